@@ -39,8 +39,10 @@ def monte_carlo(
         run_fn: one Monte Carlo run, ``key -> pytree of arrays``; pure and traceable.
         key: the study's PRNG key.
         num_runs: number of runs N.
-        chunk_size: runs vectorised together (bounds peak memory at about chunk_size runs'
-            intermediates); ``None`` runs all at once. Rounded up to a multiple of the devices.
+        chunk_size: runs vectorised together on each device (bounds peak memory at about
+            chunk_size runs' intermediates per device); ``None``: all runs at once. Each device
+            then computes the same batch shape whatever the device count, so results are
+            bitwise identical on one device and on many.
         mesh: a 1-D ``Mesh`` whose axis shards the runs, ``None`` for one device, or ``"auto"``
             (every device when there are several).
 
@@ -53,8 +55,8 @@ def monte_carlo(
     if mesh == "auto":
         mesh = default_mesh()
     num_devices = 1 if mesh is None else mesh.devices.size
-    chunk = min(chunk_size or num_runs, num_runs)
-    chunk = math.ceil(chunk / num_devices) * num_devices
+    per_device = chunk_size or math.ceil(num_runs / num_devices)
+    chunk = per_device * num_devices
     num_chunks = math.ceil(num_runs / chunk)
 
     keys = jax.random.split(key, num_runs)
