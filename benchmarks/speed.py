@@ -103,7 +103,9 @@ def passes(loglik):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--json", help="write the results here as well as to stdout")
     parser.add_argument("--steps", type=int, default=T, help="time steps per run (default 1000)")
     parser.add_argument("--runs", type=int, default=RUNS, help="runs under vmap (default 200)")
@@ -116,7 +118,9 @@ def main(argv=None):
         scales = jnp.linspace(0.5, 2.0, args.runs)  # a different Q per run
         a, b = ours(1.0, ys[0])[0], theirs(1.0, ys[0])[0]
         if not np.isclose(a, b, rtol=1e-6):  # Joseph vs plain update differ in rounding
-            raise RuntimeError(f"{name}: the two libraries disagree ({a} vs {b}): not the same problem")
+            raise RuntimeError(
+                f"{name}: the two libraries disagree ({a} vs {b}): not the same problem"
+            )
         for mode in ("single", "vmap200"):
             for pass_name in ("forward", "value_and_grad"):
                 fns = [passes(ours)[pass_name], passes(theirs)[pass_name]]
@@ -138,7 +142,9 @@ def main(argv=None):
                     }
                 )
                 print(json.dumps(rows[-1]), flush=True)
-    forward = {(r["problem"], r["mode"]): r["jaxest_us_per_step"] for r in rows if r["pass"] == "forward"}
+    forward = {
+        (r["problem"], r["mode"]): r["jaxest_us_per_step"] for r in rows if r["pass"] == "forward"
+    }
     for r in rows:
         if r["pass"] == "value_and_grad":
             r["grad_over_forward"] = r["jaxest_us_per_step"] / forward[(r["problem"], r["mode"])]

@@ -39,10 +39,21 @@ print(json.dumps({"devices": jax.device_count(), "loglik": out["loglik"].tolist(
 
 
 def run_study(devices: int) -> dict:
-    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}", JAX_PLATFORMS="cpu")
+    env = dict(
+        os.environ,
+        XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+        JAX_PLATFORMS="cpu",
+    )
     root = Path(__file__).resolve().parents[1]
     env["PYTHONPATH"] = str(root) + os.pathsep + env.get("PYTHONPATH", "")
-    done = subprocess.run([sys.executable, "-c", STUDY], env=env, capture_output=True, text=True, timeout=600, check=True)
+    done = subprocess.run(
+        [sys.executable, "-c", STUDY],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        check=True,
+    )
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
@@ -63,7 +74,9 @@ def test_chunking_does_not_change_which_key_a_run_gets():
     np.testing.assert_array_equal(whole, chunked)
     # run 7 is the run of key split(key, 10)[7] (up to the last bit: vmap vs a single call)
     np.testing.assert_allclose(whole[7], sim(jax.random.split(key, 10)[7]), rtol=1e-13, atol=1e-15)
-    lls = monte_carlo(lambda k: je.run(SVDEKF(), model, sim(k), None, prior).loglik, key, 10, chunk_size=4)
+    lls = monte_carlo(
+        lambda k: je.run(SVDEKF(), model, sim(k), None, prior).loglik, key, 10, chunk_size=4
+    )
     assert lls.shape == (10,) and np.all(np.isfinite(lls))
 
 
