@@ -32,12 +32,9 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxest.checks import check_matrix, is_concrete
+from jaxest.linalg import symmetrize
 
 _MAX_ITERATIONS = 100
-
-
-def _symmetrize(X):
-    return 0.5 * (X + jnp.swapaxes(X, -1, -2))
 
 
 def _converge(update, start, size):
@@ -100,18 +97,18 @@ def _dare_sda(A, B, Q, R):
     H_k converges quadratically to the stabilising X."""
     n = A.shape[-1]
     eye = jnp.eye(n, dtype=A.dtype)
-    G = _symmetrize(B @ jnp.linalg.solve(R, B.T))
+    G = symmetrize(B @ jnp.linalg.solve(R, B.T))
 
     def update(carry):
         Ak, Gk, Hk = carry
         W = eye + Gk @ Hk
         WA = jnp.linalg.solve(W, Ak)
         WG = jnp.linalg.solve(W, Gk)
-        H_new = _symmetrize(Hk + Ak.T @ Hk @ WA)
-        new = (Ak @ WA, _symmetrize(Gk + Ak @ WG @ Ak.T), H_new)
+        H_new = symmetrize(Hk + Ak.T @ Hk @ WA)
+        new = (Ak @ WA, symmetrize(Gk + Ak @ WG @ Ak.T), H_new)
         return new, _relative_change(H_new, Hk)
 
-    _, _, X = _converge(update, (A, G, _symmetrize(Q)), Q)
+    _, _, X = _converge(update, (A, G, symmetrize(Q)), Q)
     return X
 
 
@@ -134,7 +131,7 @@ def _care_sign(A, B, Q, R):
     lhs = jnp.concatenate([W[:n, n:], W[n:, n:] + eye])
     rhs = -jnp.concatenate([W[:n, :n] + eye, W[n:, :n]])
     X = jnp.linalg.lstsq(lhs, rhs)[0]
-    return _symmetrize(X)
+    return symmetrize(X)
 
 
 # --------------------------------------------------------------------------- implicit gradients
@@ -152,7 +149,7 @@ def _dare_bwd(residuals, Xbar):
     A, B, R, X = residuals
     K = jnp.linalg.solve(R + B.T @ X @ B, B.T @ X @ A)
     Ac = A - B @ K
-    Y = _solve_stein(Ac, _symmetrize(Xbar))
+    Y = _solve_stein(Ac, symmetrize(Xbar))
     Abar = 2 * X @ Ac @ Y
     return Abar, -Abar @ K.T, Y, K @ Y @ K.T
 
@@ -173,7 +170,7 @@ def _care_fwd(A, B, Q, R):
 def _care_bwd(residuals, Xbar):
     A, B, R, X = residuals
     K = jnp.linalg.solve(R, B.T @ X)
-    Y = _solve_lyapunov(A - B @ K, _symmetrize(Xbar))
+    Y = _solve_lyapunov(A - B @ K, symmetrize(Xbar))
     Abar = 2 * X @ Y
     return Abar, -Abar @ K.T, Y, K @ Y @ K.T
 
