@@ -64,6 +64,7 @@ def _relative_change(new, old):
 
 
 # --------------------------------------------------------------------------- Stein / Lyapunov
+@jax.jit
 def _solve_stein(T, C):
     """Y = T Y T^T + C for Schur-stable T, by squared Smith doubling:
     Y_{j+1} = Y_j + T_j Y_j T_j^T, T_{j+1} = T_j^2 (Y_j sums the first 2^j terms)."""
@@ -77,6 +78,7 @@ def _solve_stein(T, C):
     return Y
 
 
+@jax.jit
 def _solve_lyapunov(Ac, C):
     """Y with Ac Y + Y Ac^T + C = 0 for Hurwitz Ac, through the Cayley transform
     T = (Ac - g I)^{-1} (Ac + g I), which maps it to the Stein equation
@@ -91,6 +93,7 @@ def _solve_lyapunov(Ac, C):
 
 
 # --------------------------------------------------------------------------- forward solvers
+@jax.jit
 def _dare_sda(A, B, Q, R):
     """Structured doubling: A_0 = A, G_0 = B R^-1 B^T, H_0 = Q; with W = I + G_k H_k,
     A_{k+1} = A_k W^-1 A_k, G_{k+1} = G_k + A_k W^-1 G_k A_k^T, H_{k+1} = H_k + A_k^T H_k W^-1 A_k;
@@ -112,6 +115,7 @@ def _dare_sda(A, B, Q, R):
     return X
 
 
+@jax.jit
 def _care_sign(A, B, Q, R):
     """Matrix sign function of the Hamiltonian Z = [[A, -G], [-Q, -A^T]] (G = B R^-1 B^T) by the
     determinant-scaled Newton iteration Z <- (c Z + (c Z)^-1) / 2; the stable invariant subspace

@@ -91,6 +91,7 @@ class WienerSmoother(eqx.Module):
             v = v + coeff @ final_innovations[n - 1 - r]
         return v
 
+    @eqx.filter_jit
     def smooth(
         self,
         ys: Float[Array, "T m"],
@@ -116,6 +117,7 @@ class WienerSmoother(eqx.Module):
         _, xs = jax.lax.scan(body, initial_values[::-1], forcing)
         return jnp.concatenate([initial_values, xs])
 
+    @eqx.filter_jit
     def optimal_start(
         self, ys: Float[Array, "T m"], prior_mean: Float[Array, " n"]
     ) -> tuple[Float[Array, "n n"], Float[Array, "n m"]]:
@@ -125,6 +127,7 @@ class WienerSmoother(eqx.Module):
         steady = steady_state_smooth(self.model, ys, Gaussian(prior_mean, self.gain.Sigma))
         return steady.mean[: self.order], steady.innovation[-self.order :]
 
+    @eqx.filter_jit
     def eq13_initial_values(
         self, arbitrary: Float[Array, "n n"], optimal: Float[Array, "n n"], radius: float = 0.5
     ) -> Float[Array, "n n"]:
