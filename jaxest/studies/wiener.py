@@ -196,8 +196,9 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             "eq13": decay_rate(norms["eq13"], 0),
         }
         bounds = {name: eq20_bound(deltas[name], lam) for name in ("arbitrary", "eq13")}
-        bound_ratio = {
-            name: float(np.max(np.abs(deltas[name]).max(axis=1) / bounds[name])) for name in bounds
+        bound_ratio = {  # where the bound is above rounding level
+            name: float(np.max((np.abs(deltas[name]).max(axis=1) / b)[b > 1e-12 * b[0]]))
+            for name, b in bounds.items()
         }
         printed_error = np.max(np.abs(printed - steady), axis=1)
         figures = _figures(directory, states, paths, deltas, bounds, lam)
