@@ -314,3 +314,64 @@ def test_bad_arguments_name_the_argument():
     )
     with pytest.raises(ValueError, match="^model.B:"):
         steady_state_gain(with_input)
+
+
+@pytest.mark.slow
+def test_study_quick_writes_the_summary(tmp_path):
+    import json
+
+    from jaxest.studies import load
+
+    with enable_x64(True):
+        load("wiener").run(tmp_path, runs=8, seed=0, quick=True, options={})
+    summary = json.loads((tmp_path / "wiener" / "summary.json").read_text())
+    for key in (
+        "Sigma",
+        "K",
+        "eigenvalues",
+        "ar_coeffs",
+        "ma_coeffs",
+        "x1_chosen",
+        "settling_steps",
+        "mc_mse",
+    ):
+        assert key in summary, key
+    assert all(summary["matches_paper_to_4_decimals"].values())
+    assert summary["max_abs_wiener_optimal_minus_eq15"] < 1e-8
+    steps = summary["settling_steps"]
+    assert steps["optimal"] == 0 < steps["eq13"] < 10 < steps["arbitrary"]
+    assert (
+        abs(summary["decay_rate"]["eq13"] - 0.1043) < 1e-3
+        and abs(summary["decay_rate"]["arbitrary"] - 0.9226) < 1e-3
+    )
+    assert set(summary["mc_mse"]) >= {
+        "rts",
+        "steady_state",
+        "wiener_optimal",
+        "wiener_eq13",
+        "wiener_arbitrary",
+    }
+    assert (tmp_path / "wiener" / "delta.png").exists() and (
+        tmp_path / "wiener" / "tables.md"
+    ).exists()
+
+
+def test_eq13_with_a_repeated_far_eigenvalue():
+    """Psi_f with a Jordan block at 0.2 (far) and 0.9 (near): the chosen delta continues
+    (1 - 0.2 q^-1)^2 delta(t) = 0, the t lambda^t mode included."""
+    from jaxest.smoothers.steady_state import SteadyStateGain
+
+    with enable_x64(True):
+        Phi = jnp.array([[0.2, 1.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.9]])
+        gain = SteadyStateGain(
+            Phi, jnp.zeros((1, 3)), jnp.eye(3), jnp.zeros((3, 1)), jnp.eye(1)
+        )  # Psi_f = Phi
+        smoother = WienerSmoother(paper_model(), gain, arma_innovation_model(gain))
+        rng = np.random.default_rng(1)
+        optimal, arbitrary = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        delta = (
+            np.asarray(smoother.eq13_initial_values(jnp.asarray(arbitrary), jnp.asarray(optimal)))
+            - optimal
+        )
+        np.testing.assert_allclose(delta[:2], arbitrary[:2] - optimal[:2])
+        np.testing.assert_allclose(delta[2], 0.4 * delta[1] - 0.04 * delta[0], rtol=1e-6)
