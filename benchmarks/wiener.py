@@ -20,16 +20,13 @@ import platform
 import time
 
 import jax
+import jax.numpy as jnp
 
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-
-from jaxest.filters.kalman import KalmanFilter  # noqa: E402
-from jaxest.run import Gaussian, run  # noqa: E402
-from jaxest.smoothers.rts import rts_smooth  # noqa: E402
-from jaxest.smoothers.wiener import WienerSmoother  # noqa: E402
-from jaxest.systems.wiener_example import paper_model  # noqa: E402
+from jaxest.filters.kalman import KalmanFilter
+from jaxest.run import Gaussian, run
+from jaxest.smoothers.rts import rts_smooth
+from jaxest.smoothers.wiener import WienerSmoother
+from jaxest.systems.wiener_example import paper_model
 
 
 def measure(fn, *args, repeats):
@@ -43,16 +40,21 @@ def measure(fn, *args, repeats):
     memory = compiled.memory_analysis()
     total = None
     if memory is not None:
-        total = memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
+        total = (
+            memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
+        )
     return min(times), total
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--sizes", type=int, nargs="+", default=[10**3, 10**4, 10**5, 10**6])
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--json", default=None, help="also write the results to this file")
     args = parser.parse_args(argv)
+    jax.config.update("jax_enable_x64", True)
 
     model = paper_model()
     smoother = WienerSmoother.from_model(model)

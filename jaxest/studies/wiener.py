@@ -255,12 +255,9 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
         "# Wiener smoother study (Sun & Cui 2003, §4)\n",
         markdown_table(
             ["quantity", "computed", "paper", "matches"],
-            [
-                [k, np.array2string(np.round(v, 6), separator=", "), str(PAPER[k]), matches[k]]
-                for k, v in computed.items()
-            ],
+            [[k, np.round(v, 6).tolist(), str(PAPER[k]), matches[k]] for k, v in computed.items()],
         ),
-        f"\nadj(I - q^-1 Psi_f) K: q^0 {np.round(adj_K[0], 4)}, q^-1 {np.round(adj_K[1], 4)} "
+        f"\nadj(I - q^-1 Psi_f) K: q^0 {np.round(adj_K[0], 4).tolist()}, q^-1 {np.round(adj_K[1], 4).tolist()} "
         f"(printed q^-1: {PRINTED_ADJ_K[1]}, the adjugate with flipped off-diagonal signs)\n\n",
         markdown_table(
             [
@@ -274,8 +271,8 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             [
                 [
                     name,
-                    np.round(np.asarray(starts[name][0]), 4),
-                    np.round(np.asarray(starts[name][1]), 4),
+                    np.round(np.asarray(starts[name][0]), 4).tolist(),
+                    np.round(np.asarray(starts[name][1]), 4).tolist(),
                     settling[name],
                     "-" if rates.get(name) is None else f"{rates[name]:.4f}",
                     f"{bound_ratio[name]:.3g}" if name in bound_ratio else "-",
