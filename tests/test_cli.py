@@ -1,0 +1,42 @@
+"""The command line: study listing, option checks and a quick study end to end."""
+
+import json
+import subprocess
+import sys
+
+from jaxest import cli, studies
+
+
+def test_reproduce_help_lists_every_study(capsys):
+    try:
+        cli.main(["reproduce", "--help"])
+    except SystemExit:
+        pass
+    text = capsys.readouterr().out
+    for name in studies.STUDIES:
+        assert name in text
+    for option in ("--out", "--runs", "--seed", "--quick"):
+        assert option in text
+
+
+def test_unknown_study_is_refused():
+    done = subprocess.run(
+        [sys.executable, "-m", "jaxest", "reproduce", "nosuch"], capture_output=True, text=True
+    )
+    assert done.returncode != 0 and "invalid choice" in done.stderr
+
+
+def test_filters_study_quick(tmp_path):
+    done = subprocess.run(
+        [sys.executable, "-m", "jaxest", "reproduce", "filters", "--quick", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=900,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "[filters]" in done.stderr  # the progress display
+    summary = json.loads((tmp_path / "filters" / "summary.json").read_text())
+    at = {(r["filter"], r["dtype"], r["delta"]): r["rel_error"] for r in summary["robustness"]}
+    assert at[("svd_ekf", "float64", 1e-9)] < 1e-5 and at[("svd_improved", "float64", 1e-9)] < 1e-5
+    assert at[("kf", "float64", 1e-9)] is None or at[("kf", "float64", 1e-9)] > 1e-2
+    for name in ("robustness.png", "tuning.png", "tables.md"):
+        assert (tmp_path / "filters" / name).stat().st_size > 0
+    assert json.loads((tmp_path / "index.json").read_text())["filters"]["dir"].endswith("filters")
