@@ -42,34 +42,32 @@ def mass_chain(
     if N < 1:
         raise ValueError(f"N: need at least one mass, got {N}")
     n, h = 2, len(OFFSETS)
-    A = np.array([[0.0, 1.0], [-k_ground / mass, -damping / mass]])
-    L = np.zeros((N, N, h, n))
+    near, far = np.zeros((N, N, h, n)), np.zeros((N, N, h, n))  # unit springs
     for i in range(N):
         for c, d in enumerate(OFFSETS):
-            j = i + d
-            if 0 <= j < N:
-                k = k_near if abs(d) == 1 else k_far
-                L[i, j, c, 0] += k
-                L[i, i, c, 0] -= k
-    C = np.zeros((n, h))
-    C[1, :] = 1.0 / mass
+            if 0 <= i + d < N:
+                unit = near if abs(d) == 1 else far
+                unit[i, i + d, c, 0] += 1.0
+                unit[i, i, c, 0] -= 1.0
+    # jnp arithmetic on the parameters, so a chain can be built under jit/vmap/grad
+    L = k_near * jnp.asarray(near, dtype) + k_far * jnp.asarray(far, dtype)
+    A = (
+        jnp.asarray([[0.0, 1.0], [0.0, 0.0]], dtype)
+        + jnp.asarray([[0.0, 0.0], [-1.0, 0.0]], dtype) * (k_ground / mass)
+        + jnp.asarray([[0.0, 0.0], [0.0, -1.0]], dtype) * (damping / mass)
+    )
+    C = jnp.zeros((n, h), dtype).at[1, :].set(1.0 / mass)
     q = 1 + h if force_sensors else 1
     H1 = np.zeros((q, n))
     H1[0, 0] = 1.0
     H2 = np.zeros((q, h))
     if force_sensors:
         H2[1:, :] = np.eye(h)
-    R = np.diag([r_position] + [r_force] * (q - 1))
-    tile = lambda M: jnp.asarray(np.broadcast_to(M, (N, *M.shape)), dtype)
+    R = jnp.diag(jnp.asarray([r_position] + [r_force] * (q - 1), dtype))
+    Q = jnp.diag(jnp.asarray([q_position, q_force], dtype))
+    tile = lambda M: jnp.broadcast_to(jnp.asarray(M, dtype), (N, *jnp.shape(M)))
     return LargeScaleSystem(
-        A=tile(A),
-        C=tile(C),
-        F=tile(np.eye(n)),
-        L=jnp.asarray(L, dtype),
-        H1=tile(H1),
-        H2=tile(H2),
-        Q=tile(np.diag([q_position, q_force])),
-        R=tile(R),
+        A=tile(A), C=tile(C), F=tile(np.eye(n)), L=L, H1=tile(H1), H2=tile(H2), Q=tile(Q), R=tile(R)
     )
 
 
