@@ -248,6 +248,28 @@ def check_existence(system: LargeScaleSystem, structure: CommunicationStructure)
             )
 
 
+def simulate_step(system: LargeScaleSystem, x: Float[Array, "N n"], t, dt: float, key):
+    """One Euler-Maruyama step of eqs 1-3 from x(t): returns (x(t + dt), y_k) with the sampled
+    measurement y_k = (1/dt) * integral of y over [t, t + dt] = H x(t) + dv / dt, dv ~ N(0, R dt)."""
+    N, n = x.shape
+    sys = system.at(t)
+    kw, kv = jax.random.split(key)
+    A, H, _, _ = sys.centralized()
+    noise = lambda k, cov: jnp.einsum(
+        "iab,ib->ia", jnp.linalg.cholesky(cov), jax.random.normal(k, cov.shape[:2], x.dtype)
+    )
+    w, v = noise(kw, sys.Q), noise(kv, sys.R)
+    y = (H @ x.reshape(-1)).reshape(N, -1) + v / jnp.sqrt(dt)
+    drift = (A @ x.reshape(-1)).reshape(N, n)
+    return x + dt * drift + jnp.sqrt(dt) * jnp.einsum("iap,ip->ia", sys.F, w), y
+
+
+def draw_initial_state(mean0: Float[Array, "N n"], cov0: Float[Array, "N n n"], key):
+    """x(0) ~ N(mean0, blkdiag(cov0))."""
+    normal = jax.random.normal(key, mean0.shape, mean0.dtype)
+    return mean0 + jnp.einsum("iab,ib->ia", jnp.linalg.cholesky(cov0), normal)
+
+
 def simulate(
     system: LargeScaleSystem,
     mean0: Float[Array, "N n"],
@@ -256,38 +278,20 @@ def simulate(
     num_steps: int,
     key,
 ):
-    """Euler-Maruyama draw of eqs 1-3 sampled every ``dt``.
+    """Euler-Maruyama draw of eqs 1-3 sampled every ``dt`` (see :func:`simulate_step`).
 
-    Returns ``(states, ys)``: x(t_k) with shape (T, N, n) and the sampled measurements
-    y_k = (1/dt) * integral of y over [t_k, t_k + dt] = H x(t_k) + dv_k / dt, with
-    dv_k ~ N(0, R dt), shape (T, N, q). The initial state is drawn from N(mean0, blkdiag(cov0)).
+    Returns ``(states, ys)``: x(t_k) with shape (T, N, n) and the sampled measurements y_k,
+    shape (T, N, q). The initial state is drawn from N(mean0, blkdiag(cov0)).
     """
-    N, n = system.num_nodes, system.state_dim
     key0, key = jax.random.split(key)
-    x0 = mean0 + jnp.einsum(
-        "iab,ib->ia", jnp.linalg.cholesky(cov0), jax.random.normal(key0, mean0.shape, mean0.dtype)
-    )
-    keys = jax.random.split(key, num_steps)
-    dtype = mean0.dtype
 
     def body(x, args):
-        k, key = args
-        sys = system.at(k * dt)
-        kw, kv = jax.random.split(key)
-        A, H, _, _ = sys.centralized()
-        w = jnp.einsum(
-            "iab,ib->ia", jnp.linalg.cholesky(sys.Q), jax.random.normal(kw, sys.Q.shape[:2], dtype)
-        )
-        v = jnp.einsum(
-            "iab,ib->ia", jnp.linalg.cholesky(sys.R), jax.random.normal(kv, sys.R.shape[:2], dtype)
-        )
-        y = (H @ x.reshape(-1)).reshape(N, -1) + v / jnp.sqrt(dt)
-        x_next = (
-            x
-            + dt * (A @ x.reshape(-1)).reshape(N, n)
-            + jnp.sqrt(dt) * jnp.einsum("iap,ip->ia", sys.F, w)
-        )
+        k, step_key = args
+        x_next, y = simulate_step(system, x, k * dt, dt, step_key)
         return x_next, (x, y)
 
-    _, (states, ys) = jax.lax.scan(body, x0, (jnp.arange(num_steps), keys))
+    keys = jax.random.split(key, num_steps)
+    _, (states, ys) = jax.lax.scan(
+        body, draw_initial_state(mean0, cov0, key0), (jnp.arange(num_steps), keys)
+    )
     return states, ys
