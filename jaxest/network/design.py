@@ -316,6 +316,7 @@ def _steady_state(system, structure, cov0, S, horizon, max_steps):
     )
 
 
+@eqx.filter_jit
 def instantaneous_cost(system, structure, P, free, S, node: int):
     """tr(S_i [P']_ii) as a function of node i's free gain part G~_i (n, q) (lemma 4, eq 44), at
     the joint covariance P, the other nodes keeping their optimal gains. Used to check step 4: its
@@ -328,6 +329,7 @@ def instantaneous_cost(system, structure, P, free, S, node: int):
     return node_costs(dP, S)[node]
 
 
+@eqx.filter_jit
 def optimal_free_gain(system, structure, P, node: int):
     """The free part G~_i of step 4 at P (zero columns outside the null space of phi_i)."""
     constraint = gain_constraint(system, structure)

@@ -49,25 +49,34 @@ def mass_chain(
                 unit = near if abs(d) == 1 else far
                 unit[i, i + d, c, 0] += 1.0
                 unit[i, i, c, 0] -= 1.0
-    # jnp arithmetic on the parameters, so a chain can be built under jit/vmap/grad
-    L = k_near * jnp.asarray(near, dtype) + k_far * jnp.asarray(far, dtype)
+    params = (mass, k_ground, damping, k_near, k_far, q_force, q_position, r_position, r_force)
+    # NumPy for numbers (no per-operation dispatch), jnp for traced parameters (jit/vmap/grad)
+    xp = np if all(isinstance(v, int | float | np.number) for v in params) else jnp
+    L = k_near * xp.asarray(near) + k_far * xp.asarray(far)
     A = (
-        jnp.asarray([[0.0, 1.0], [0.0, 0.0]], dtype)
-        + jnp.asarray([[0.0, 0.0], [-1.0, 0.0]], dtype) * (k_ground / mass)
-        + jnp.asarray([[0.0, 0.0], [0.0, -1.0]], dtype) * (damping / mass)
+        xp.asarray([[0.0, 1.0], [0.0, 0.0]])
+        + xp.asarray([[0.0, 0.0], [-1.0, 0.0]]) * (k_ground / mass)
+        + xp.asarray([[0.0, 0.0], [0.0, -1.0]]) * (damping / mass)
     )
-    C = jnp.zeros((n, h), dtype).at[1, :].set(1.0 / mass)
+    C = xp.asarray([[0.0] * h, [1.0] * h]) * (1.0 / mass)
     q = 1 + h if force_sensors else 1
     H1 = np.zeros((q, n))
     H1[0, 0] = 1.0
     H2 = np.zeros((q, h))
     if force_sensors:
         H2[1:, :] = np.eye(h)
-    R = jnp.diag(jnp.asarray([r_position] + [r_force] * (q - 1), dtype))
-    Q = jnp.diag(jnp.asarray([q_position, q_force], dtype))
-    tile = lambda M: jnp.broadcast_to(jnp.asarray(M, dtype), (N, *jnp.shape(M)))
+    R = xp.diag(xp.stack([xp.asarray(r_position)] + [xp.asarray(r_force)] * (q - 1)))
+    Q = xp.diag(xp.stack([xp.asarray(q_position), xp.asarray(q_force)]))
+    tile = lambda M: jnp.asarray(xp.broadcast_to(M, (N, *M.shape)), dtype)
     return LargeScaleSystem(
-        A=tile(A), C=tile(C), F=tile(np.eye(n)), L=L, H1=tile(H1), H2=tile(H2), Q=tile(Q), R=tile(R)
+        A=tile(A),
+        C=tile(C),
+        F=tile(np.eye(n)),
+        L=jnp.asarray(L, dtype),
+        H1=tile(H1),
+        H2=tile(H2),
+        Q=tile(Q),
+        R=tile(R),
     )
 
 
