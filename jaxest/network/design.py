@@ -302,7 +302,7 @@ def _steady_state(system, structure, cov0, S, horizon, max_steps):
         saveat=diffrax.SaveAt(t1=True),
         args=pieces,
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        event=diffrax.Event(diffrax.steady_state_event(rtol=100 * rtol, atol=100 * atol)),
+        event=diffrax.Event(diffrax.steady_state_event(rtol=10 * rtol, atol=10 * atol)),
         max_steps=max_steps,
     )
     P = sol.ys[-1]
