@@ -6,7 +6,13 @@
 - :mod:`~jaxest.network.filter`: the filter of eq 9 on sampled data, on one device or sharded.
 """
 
-from jaxest.network.design import NetworkDesign, SteadyState, design, steady_state
+from jaxest.network.design import (
+    NetworkDesign,
+    SteadyState,
+    centralized_steady_state,
+    design,
+    steady_state,
+)
 from jaxest.network.filter import NetworkFilter, NetworkResult, run_sharded
 from jaxest.network.structure import (
     CommunicationStructure,
@@ -22,6 +28,7 @@ __all__ = [
     "NetworkFilter",
     "NetworkResult",
     "SteadyState",
+    "centralized_steady_state",
     "check_existence",
     "design",
     "run_sharded",

@@ -36,9 +36,12 @@ from jaxtyping import Array, Float
 from jaxest.network.structure import (
     CommunicationStructure,
     LargeScaleSystem,
+    block_diag,
     check_existence,
+    piece_index,
     unheard_couplings,
 )
+from jaxest.riccati import solve_care
 
 
 class GainConstraint(eqx.Module):
@@ -85,19 +88,21 @@ def closed_loop_blocks(system: LargeScaleSystem, structure: CommunicationStructu
     return Abar, Hbar
 
 
-def _blocks(P: Float[Array, "Nn Nn"], N: int) -> Float[Array, "N N n n"]:
+def to_blocks(P: Float[Array, "Nn Nn"], N: int) -> Float[Array, "N N n n"]:
+    """The N x N blocks P_ij of a joint matrix, as an (N, N, n, n) array."""
     n = P.shape[-1] // N
     return jnp.transpose(P.reshape(N, n, N, n), (0, 2, 1, 3))
 
 
-def _unblocks(X: Float[Array, "N N a b"]) -> Array:
+def from_blocks(X: Float[Array, "N N a b"]) -> Array:
+    """Inverse of :func:`to_blocks`: assemble blocks X[i, j] into one matrix."""
     N, _, a, b = X.shape
     return jnp.transpose(X, (0, 2, 1, 3)).reshape(N * a, N * b)
 
 
 def measurement_cross_covariance(P, Hbar):
     """K_i = E[e_i (y_i - y^_i)^T] = P_i H_i1^T + sum_{j in C_i or j = i} P_ij L_ij^T H_i2^T."""
-    return jnp.einsum("ijab,ijcb->iac", _blocks(P, Hbar.shape[0]), Hbar)
+    return jnp.einsum("ijab,ijcb->iac", to_blocks(P, Hbar.shape[0]), Hbar)
 
 
 def optimal_gain(system, constraint: GainConstraint, Hbar, P) -> Float[Array, "N n q"]:
@@ -116,7 +121,7 @@ def optimal_gain(system, constraint: GainConstraint, Hbar, P) -> Float[Array, "N
 
 def covariance_rate(system, Abar, Hbar, G, P) -> Float[Array, "Nn Nn"]:
     """P' = Phi P + P Phi^T + F Q F^T + G R G^T (eqs 28 and 30 are its blocks)."""
-    Phi = _unblocks(Abar - jnp.einsum("iaq,ijqb->ijab", G, Hbar))
+    Phi = from_blocks(Abar - jnp.einsum("iaq,ijqb->ijab", G, Hbar))
     FQF = jnp.einsum("iap,ipq,ibq->iab", system.F, system.Q, system.F)
     GRG = jnp.einsum("iaq,iqr,ibr->iab", G, system.R, G)
     N, n = G.shape[:2]
@@ -128,7 +133,7 @@ def covariance_rate(system, Abar, Hbar, G, P) -> Float[Array, "Nn Nn"]:
 def node_costs(P, S) -> Float[Array, " N"]:
     """J_i = tr(S_i P_i) (eq 43) for every node."""
     return jnp.einsum(
-        "iab,iba->i", S, jnp.diagonal(_blocks(P, S.shape[0]), axis1=0, axis2=1).transpose(2, 0, 1)
+        "iab,iba->i", S, jnp.diagonal(to_blocks(P, S.shape[0]), axis1=0, axis2=1).transpose(2, 0, 1)
     )
 
 
@@ -142,9 +147,7 @@ class _Pieces(eqx.Module):
     Hbar: Array
 
     def at(self, t):
-        k = jnp.clip(
-            jnp.searchsorted(jnp.asarray(self.starts), t, side="right") - 1, 0, len(self.starts) - 1
-        )
+        k = piece_index(self.starts, t)
         pick = lambda x: x[k]
         return jax.tree.map(pick, (self.system, self.constraint, self.Abar, self.Hbar))
 
@@ -201,8 +204,6 @@ class NetworkDesign(eqx.Module):
 
 
 def _initial_cov(system, cov0):
-    from jaxest.network.structure import block_diag
-
     if cov0 is None:
         return jnp.zeros((system.num_nodes * system.state_dim,) * 2, system.A.dtype)
     return block_diag(cov0)
@@ -342,7 +343,5 @@ def optimal_free_gain(system, structure, P, node: int):
 def centralized_steady_state(system: LargeScaleSystem):
     """Steady-state Kalman-Bucy covariance of the whole system (the lower bound on every structure):
     the filter CARE A P + P A^T - P H^T R^{-1} H P + F Q F^T = 0 through ``jaxest.riccati``."""
-    from jaxest.riccati import solve_care
-
     A, H, W, R = system.centralized()
     return solve_care(A.T, H.T, W, R)

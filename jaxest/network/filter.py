@@ -23,7 +23,12 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, Int
 
-from jaxest.network.structure import CommunicationStructure, LargeScaleSystem, _pick, _piece
+from jaxest.network.structure import (
+    CommunicationStructure,
+    LargeScaleSystem,
+    pick_piece,
+    piece_index,
+)
 from jaxest.run import Gaussian, check_finite_status
 
 
@@ -129,10 +134,10 @@ def run_sharded(
         def body(carry, y):
             k, mean = carry  # mean (1, n): this node's estimate
             t = t0 + k * dt
-            p = _piece(sys_times, t)
-            A_k, C_k, H1_k, H2_k = (_pick(M, 3, p) for M in (A, C, H1, H2))
-            L_k = _pick(L, 4, p)[0]  # (N, h, n): this node's couplings L_ij
-            hears_k = _pick(hears, 2, _piece(struct_times, t))[0]
+            p = piece_index(sys_times, t)
+            A_k, C_k, H1_k, H2_k = (pick_piece(M, 3, p) for M in (A, C, H1, H2))
+            L_k = pick_piece(L, 4, p)[0]  # (N, h, n): this node's couplings L_ij
+            hears_k = pick_piece(hears, 2, piece_index(struct_times, t))[0]
             coupling = L_k[i] @ mean[0]
             for d in offsets:  # receive x^_{i+d} from the device at offset d
                 other = jax.lax.ppermute(mean, "node", perm=[(j, (j - d) % N) for j in range(N)])

@@ -24,13 +24,13 @@ from jaxtyping import Array, Bool, Float
 from jaxest.checks import check_matrix, is_concrete
 
 
-def _piece(switch_times: tuple[float, ...], t) -> Array:
+def piece_index(switch_times: tuple[float, ...], t) -> Array:
     """Index of the piece of a piecewise-constant schedule that holds at time ``t``."""
     starts = jnp.asarray(switch_times)
     return jnp.clip(jnp.searchsorted(starts, t, side="right") - 1, 0, len(switch_times) - 1)
 
 
-def _pick(value: Array, ndim: int, index) -> Array:
+def pick_piece(value: Array, ndim: int, index) -> Array:
     return value[index] if value.ndim == ndim + 1 else value
 
 
@@ -106,9 +106,9 @@ class LargeScaleSystem(eqx.Module):
 
     def at(self, t) -> LargeScaleSystem:
         """The constant system that holds at time ``t``."""
-        k = _piece(self.switch_times, t)
+        k = piece_index(self.switch_times, t)
         ndims = {"A": 3, "C": 3, "F": 3, "L": 4, "H1": 3, "H2": 3, "Q": 3, "R": 3}
-        return LargeScaleSystem(**{m: _pick(getattr(self, m), d, k) for m, d in ndims.items()})
+        return LargeScaleSystem(**{m: pick_piece(getattr(self, m), d, k) for m, d in ndims.items()})
 
     def centralized(self):
         """The whole system as one: (A, H, F Q F^T, R) with x = [x_1; ...; x_N] (eq 4).
@@ -186,7 +186,7 @@ class CommunicationStructure(eqx.Module):
 
     def at(self, t) -> CommunicationStructure:
         """The structure that holds at time ``t``, diagonal cleared."""
-        hears = _pick(self.hears, 2, _piece(self.switch_times, t))
+        hears = pick_piece(self.hears, 2, piece_index(self.switch_times, t))
         return CommunicationStructure(hears & ~jnp.eye(self.num_nodes, dtype=bool))
 
     def links(self) -> int:

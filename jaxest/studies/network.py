@@ -22,10 +22,10 @@ import numpy as np
 
 from jaxest.network import CommunicationStructure, NetworkFilter, design, steady_state
 from jaxest.network.design import (
-    _unblocks,
     centralized_steady_state,
     closed_loop_blocks,
     covariance_rate,
+    from_blocks,
     instantaneous_cost,
     optimal_free_gain,
 )
@@ -95,7 +95,7 @@ def discrete_expected_cost(system, structure, gains, cov0, dt):
     Abar, Hbar = closed_loop_blocks(system, structure)
 
     def body(P, G):
-        Phi = _unblocks(Abar - jnp.einsum("iaq,ijqb->ijab", G, Hbar))
+        Phi = from_blocks(Abar - jnp.einsum("iaq,ijqb->ijab", G, Hbar))
         W = covariance_rate(system, Abar, Hbar, G, jnp.zeros_like(P))
         M = jnp.eye(P.shape[0], dtype=P.dtype) + dt * Phi
         return M @ P @ M.T + dt * W, jnp.trace(P)
