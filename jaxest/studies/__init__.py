@@ -14,6 +14,7 @@ import importlib
 STUDIES: dict[str, str] = {
     "filters": "jaxest.studies.filters",
     "wiener": "jaxest.studies.wiener",
+    "network": "jaxest.studies.network",
 }
 
 
