@@ -49,7 +49,9 @@ def test_kinematics_match_rigid_body_equations():
         vel_rate = inputs[:3] + C.T @ [0, 0, GRAVITY] - np.cross(omega, x[:3])
         np.testing.assert_allclose(dx[:3], vel_rate, rtol=1e-12, atol=1e-12)
         eps = 1e-6
-        C_dot = (dcm_body_to_ned(*(x[3:6] + eps * dx[3:6])) - dcm_body_to_ned(*(x[3:6] - eps * dx[3:6]))) / (2 * eps)
+        C_dot = (
+            dcm_body_to_ned(*(x[3:6] + eps * dx[3:6])) - dcm_body_to_ned(*(x[3:6] - eps * dx[3:6]))
+        ) / (2 * eps)
         np.testing.assert_allclose(C_dot, C @ skew(omega), atol=1e-8)
         np.testing.assert_allclose(dx[6], -(C @ x[:3])[2], rtol=1e-12)
 
@@ -63,10 +65,16 @@ def test_one_rk4_step_matches_fine_reference_integration():
         x = random_state(rng)
         u0 = rng.normal(size=6) * [1, 1, 1, 0.2, 0.2, 0.2] + [0, 0, -9.8, 0, 0, 0]
         u1 = u0 + rng.normal(size=6) * [0.5, 0.5, 0.5, 0.05, 0.05, 0.05]
-        rhs = lambda t, s: np.asarray(flight.kinematics(jnp.asarray(s), jnp.asarray(u0 + t / dt * (u1 - u0))))
+        rhs = lambda t, s: np.asarray(
+            flight.kinematics(jnp.asarray(s), jnp.asarray(u0 + t / dt * (u1 - u0)))
+        )
         ref = solve_ivp(rhs, (0, dt), x, rtol=1e-12, atol=1e-12, method="DOP853").y[:, -1]
-        one = np.asarray(flight.integrate_interval(jnp.asarray(x), jnp.asarray(u0), jnp.asarray(u1), dt))
-        four = np.asarray(flight.integrate_interval(jnp.asarray(x), jnp.asarray(u0), jnp.asarray(u1), dt, 4))
+        one = np.asarray(
+            flight.integrate_interval(jnp.asarray(x), jnp.asarray(u0), jnp.asarray(u1), dt)
+        )
+        four = np.asarray(
+            flight.integrate_interval(jnp.asarray(x), jnp.asarray(u0), jnp.asarray(u1), dt, 4)
+        )
         err_one, err_four = np.abs(one - ref), np.abs(four - ref)
         assert np.max(err_one[:3]) < 1e-5  # m/s
         assert np.max(err_one[3:6]) < 1e-7  # rad
@@ -97,10 +105,15 @@ def test_observation_eq28_by_hand():
 
 def _model_and_point(rng, dtype=jnp.float64):
     model = flight.flight_model(
-        0.1, jnp.full(6, 0.02, dtype), jnp.full(6, 0.01, dtype), flight.LeverArms(8.0, 0.5, 8.0, 0.5)
+        0.1,
+        jnp.full(6, 0.02, dtype),
+        jnp.full(6, 0.01, dtype),
+        flight.LeverArms(8.0, 0.5, 8.0, 0.5),
     )
     x = jnp.asarray(np.concatenate([random_state(rng), rng.normal(size=16) * 0.01]), dtype)
-    u = jnp.asarray(np.tile([0.5, 0.1, -9.6, 0.05, -0.02, 0.03], 2) + rng.normal(size=12) * 0.05, dtype)
+    u = jnp.asarray(
+        np.tile([0.5, 0.1, -9.6, 0.05, -0.02, 0.03], 2) + rng.normal(size=12) * 0.05, dtype
+    )
     return model, x, u
 
 
@@ -117,13 +130,17 @@ def test_jacobians_match_finite_differences():
     scale = np.concatenate([[1.0] * 3, [1e-3] * 3, [1.0], [1e-3] * 16])
     f_jit, h_jit = jax.jit(model.f), jax.jit(model.h)
     f = lambda z: np.asarray(f_jit(jnp.asarray(z), u))
-    F_fd = _central_difference(lambda d: f(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale
+    F_fd = (
+        _central_difference(lambda d: f(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale
+    )
     # atol: round-off of h ~ 2000 m over a step of 1e-6 is ~ 2e-7
     np.testing.assert_allclose(F, F_fd, rtol=1e-6, atol=1e-6)
     G_fd = _central_difference(lambda v: np.asarray(f_jit(x, jnp.asarray(v))), np.asarray(u), 1e-4)
     np.testing.assert_allclose(G, G_fd, rtol=1e-6, atol=1e-8)
     h = lambda z: np.asarray(h_jit(jnp.asarray(z), u))
-    H_fd = _central_difference(lambda d: h(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale
+    H_fd = (
+        _central_difference(lambda d: h(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale
+    )
     np.testing.assert_allclose(H, H_fd, rtol=1e-6, atol=1e-9)
     # parameters are constants, the process noise reaches only the kinematic states
     np.testing.assert_array_equal(np.asarray(F)[N_KIN:], np.eye(N_STATE)[N_KIN:])
@@ -166,4 +183,6 @@ def test_model_under_jit_vmap_grad_keeps_dtype(dtype):
     assert ys.shape == (2, 6) and ys.dtype == dtype
     grad = jax.grad(lambda z: jnp.sum(model.f(z, u)[:3]))(x)
     assert grad.dtype == dtype and bool(jnp.all(jnp.isfinite(grad)))
-    np.testing.assert_allclose(grad, np.sum(np.asarray(F, np.float64)[:3], axis=0), rtol=1e-4, atol=1e-6)
+    np.testing.assert_allclose(
+        grad, np.sum(np.asarray(F, np.float64)[:3], axis=0), rtol=1e-4, atol=1e-6
+    )
