@@ -66,7 +66,9 @@ N_KIN, N_PAR, N_IN, N_OUT = len(KINEMATIC_STATES), len(PARAMETERS), len(INPUTS),
 N_STATE = N_KIN + N_PAR
 
 
-def kinematics(x: Float[Array, 7], inputs: Float[Array, 6], gravity=GRAVITY) -> Float[Array, 7]:
+def kinematics(
+    x: Float[Array, " 7"], inputs: Float[Array, " 6"], gravity=GRAVITY
+) -> Float[Array, " 7"]:
     """Time derivative of [u, v, w, phi, theta, psi, h] (eq 26, corrected) for the true inputs
     [a_x, a_y, a_z, p, q, r] (specific forces in body axes, body rates)."""
     u, v, w, phi, theta, _, _ = x
@@ -135,7 +137,7 @@ class LeverArms(eqx.Module):
 class FlightObservation(eqx.Module):
     """h(x^a, u) of eq 28/33: airspeed, flow angles at the vanes, attitude and altitude."""
 
-    lever_arms: LeverArms = LeverArms()
+    lever_arms: LeverArms = LeverArms()  # noqa: RUF009 - a frozen Module, safe as a default
 
     def __call__(self, xa, u):
         u_b, v, w, phi, theta, _, h = xa[:N_KIN]
@@ -159,7 +161,11 @@ class FlightObservation(eqx.Module):
         )
 
 
-def input_noise_cov(input_std: Float[Array, 6]) -> Float[Array, "12 12"]:
+#: no lever arms: flow angles already reduced to the centre of gravity (as in the ATTAS data)
+AT_CG = LeverArms()
+
+
+def input_noise_cov(input_std: Float[Array, " 6"]) -> Float[Array, "12 12"]:
     """Q on the interval input [u_m(k), u_m(k+1)] for white noise of std ``input_std`` per sample."""
     qc = jnp.diag(jnp.asarray(input_std) ** 2)
     zero = jnp.zeros_like(qc)
@@ -168,9 +174,9 @@ def input_noise_cov(input_std: Float[Array, 6]) -> Float[Array, "12 12"]:
 
 def flight_model(
     dt: float,
-    input_std: Float[Array, 6],
-    output_std: Float[Array, 6],
-    lever_arms: LeverArms = LeverArms(),
+    input_std: Float[Array, " 6"],
+    output_std: Float[Array, " 6"],
+    lever_arms: LeverArms = AT_CG,
     substeps: int = 1,
 ) -> NonlinearGaussian:
     """The augmented 23-state model (eqs 31-33) with input noise std ``input_std`` (a_x, a_y, a_z in
