@@ -94,6 +94,7 @@ def small_monte_carlo(estimator, runs=4, dtype=jnp.float64):
     return jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(0), runs))
 
 
+@pytest.mark.slow
 def test_svd_ekf_recovers_gyro_biases_consistently():
     """Elevator maneuver, 32 Hz: the pitch-rate bias is estimated to a small fraction of its prior
     spread, the final errors are consistent with the filter's covariance, and the SVD-EKF agrees
@@ -116,6 +117,7 @@ def test_svd_ekf_runs_in_float32_on_the_flight_model():
     assert np.max(np.abs(np.asarray(err[:, 3:5]))) < 0.5 * DEG  # attitude errors
 
 
+@pytest.mark.slow
 def test_loglik_derivative_wrt_noise_levels_matches_finite_differences():
     """The derivative that tunes Q and R (the study's tune_noise) along a random direction of the
     12 log noise levels, against a central difference."""
