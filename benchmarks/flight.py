@@ -1,0 +1,90 @@
+"""Speed of the svd-ekf study and of the 23-state augmented filters under vmap; prints JSON.
+
+    python benchmarks/flight.py [--runs 100] [--rate 32] [--study quick|full|none] [--json PATH]
+
+Per-step times are wall-clock seconds of one compiled, vmapped Monte Carlo batch divided by the
+number of steps (and by the number of runs for the per-run figure), after a warm-up call.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import tempfile
+import time
+from pathlib import Path
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+
+from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF  # noqa: E402
+from jaxest.studies import svd_ekf  # noqa: E402
+from jaxest.systems import flight_data  # noqa: E402
+from jaxest.systems import flight_sim as sim  # noqa: E402
+
+
+def per_step_times(runs: int, rate: int, dtype_name: str, repeats: int = 3) -> dict:
+    dtype = jnp.dtype(dtype_name)
+    truth = sim.true_flight("elevator", rate)
+    batch = svd_ekf.simulated_batch(truth, runs, jax.random.key(0), dtype)
+    model, P0 = svd_ekf.model_for(rate, dtype), svd_ekf.prior_cov(dtype)
+    T = truth.t.shape[0]
+    out = {}
+    for name, est in {"ekf": EKF(), "svd_ekf": SVDEKF(), "svd_improved": ImprovedSVDKF()}.items():
+        start = time.perf_counter()
+        jax.block_until_ready(svd_ekf._monte_carlo(est, model, batch, P0, rate, runs))
+        compile_s = time.perf_counter() - start
+        best = float("inf")
+        for _ in range(repeats):
+            start = time.perf_counter()
+            jax.block_until_ready(svd_ekf._monte_carlo(est, model, batch, P0, rate, runs))
+            best = min(best, time.perf_counter() - start)
+        out[name] = {
+            "first_call_s": compile_s,
+            "batch_s": best,
+            "step_s_batch": best / T,
+            "step_s_per_run": best / (T * runs),
+        }
+    return out
+
+
+def study_time(quick: bool) -> float:
+    with tempfile.TemporaryDirectory() as tmp:
+        start = time.perf_counter()
+        svd_ekf.run(Path(tmp), runs=None, seed=0, quick=quick,
+                    options={"data": flight_data.find_data_dir()})  # fmt: skip
+        return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=100)
+    parser.add_argument("--rate", type=int, default=32)
+    parser.add_argument("--study", choices=["quick", "full", "none"], default="quick")
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args()
+    result = {
+        "machine": {
+            "platform": platform.platform(),
+            "device": str(jax.devices()[0]),
+            "jax": jax.__version__,
+        },  # fmt: skip
+        "state_dim": 23,
+        "runs": args.runs,
+        "rate_hz": args.rate,
+        "per_step": {d: per_step_times(args.runs, args.rate, d) for d in ("float64", "float32")},
+    }
+    if args.study != "none":
+        result[f"study_{args.study}_s"] = study_time(args.study == "quick")
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.json:
+        args.json.write_text(text)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,43 @@
+"""Loader of the real flight data (skipped where the data directory is absent)."""
+
+import numpy as np
+import pytest
+
+from jaxest.systems import flight_data
+
+DATA = flight_data.find_data_dir()
+needs_data = pytest.mark.skipif(
+    DATA is None, reason="flight data not found (../shared/data/flight)"
+)
+
+
+def test_missing_directory_explains_the_download(tmp_path):
+    with pytest.raises(ValueError, match="data: .*flt_data.zip"):
+        flight_data.find_data_dir(tmp_path / "nowhere")
+    with pytest.raises(ValueError, match="not found.*flt_data.zip"):
+        flight_data.load_attas("elevator", tmp_path)
+
+
+@needs_data
+@pytest.mark.parametrize("maneuver", list(flight_data.ATTAS_FILES))
+def test_attas_channels_in_si_units(maneuver):
+    d = flight_data.load_attas(maneuver, DATA)
+    assert d.inputs.shape == d.outputs.shape == (d.t.shape[0], 6)
+    np.testing.assert_allclose(np.diff(d.t), 0.04, atol=1e-6)  # 25 Hz
+    speed, beta, alpha, theta, phi, h = d.outputs.T
+    assert 100 < speed.mean() < 160  # m/s
+    assert np.all(np.abs(alpha) < 0.3) and np.all(np.abs(beta) < 0.2)  # rad, not deg
+    assert 4000 < h.mean() < 6000  # 16000 ft in metres
+    a_z = d.inputs[:, 2]
+    assert -12 < a_z.mean() < -8  # specific force at 1 g, z down
+    assert np.all(np.abs(d.inputs[:, 3:]) < 1.0)  # rad/s
+
+
+@needs_data
+def test_hfb320_has_no_altitude():
+    d = flight_data.load_hfb320(DATA)
+    assert d.t.shape == (601,)
+    np.testing.assert_allclose(d.rate_hz, 10.0, rtol=1e-6)
+    assert np.all(np.isnan(d.outputs[:, 5]))
+    assert 100 < np.mean(d.outputs[:, 0]) < 115
+    assert -10.5 < np.mean(d.inputs[:, 2]) < -9.0  # AZCG is column 11 whatever README says

@@ -1,0 +1,188 @@
+"""The flight-path reconstruction model (eq 26-33) against independent formulations."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+from jaxest.systems import flight
+from jaxest.systems.flight import GRAVITY, N_KIN, N_STATE
+
+
+@pytest.fixture(autouse=True)
+def x64():
+    """The reference comparisons need float64 (float32 runs ask for float32 arrays explicitly)."""
+    with jax.enable_x64(True):
+        yield
+
+
+def dcm_body_to_ned(phi, theta, psi):
+    """C such that v_ned = C v_body (3-2-1 Euler angles), written out independently."""
+    cf, sf, ct, st, cp, sp = (np.cos(phi), np.sin(phi), np.cos(theta), np.sin(theta),
+                              np.cos(psi), np.sin(psi))  # fmt: skip
+    rz = np.array([[cp, -sp, 0], [sp, cp, 0], [0, 0, 1]])
+    ry = np.array([[ct, 0, st], [0, 1, 0], [-st, 0, ct]])
+    rx = np.array([[1, 0, 0], [0, cf, -sf], [0, sf, cf]])
+    return rz @ ry @ rx
+
+
+def skew(w):
+    return np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+
+
+def random_state(rng):
+    vel = np.array([120.0, 0.0, 5.0]) + rng.normal(size=3) * [5, 3, 3]
+    angles = rng.uniform(-0.6, 0.6, size=3) * [1, 0.8, 3]
+    return np.concatenate([vel, angles, [2000.0 + rng.normal() * 100]])
+
+
+def test_kinematics_match_rigid_body_equations():
+    """Eq 26 (corrected) against v' = a + C^T g - w x v, C' = C [w x], h' = -(C v)_z."""
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        x = random_state(rng)
+        inputs = rng.normal(size=6) * [1, 1, 1, 0.3, 0.3, 0.3] + [0, 0, -9.8, 0, 0, 0]
+        dx = np.asarray(flight.kinematics(jnp.asarray(x), jnp.asarray(inputs)))
+        C = dcm_body_to_ned(*x[3:6])
+        omega = inputs[3:]
+        vel_rate = inputs[:3] + C.T @ [0, 0, GRAVITY] - np.cross(omega, x[:3])
+        np.testing.assert_allclose(dx[:3], vel_rate, rtol=1e-12, atol=1e-12)
+        eps = 1e-6
+        C_dot = (
+            dcm_body_to_ned(*(x[3:6] + eps * dx[3:6])) - dcm_body_to_ned(*(x[3:6] - eps * dx[3:6]))
+        ) / (2 * eps)
+        np.testing.assert_allclose(C_dot, C @ skew(omega), atol=1e-8)
+        np.testing.assert_allclose(dx[6], -(C @ x[:3])[2], rtol=1e-12)
+
+
+def test_one_rk4_step_matches_fine_reference_integration():
+    """Eq 32's discretisation: one RK4 step over 0.1 s (10 Hz) with linearly interpolated inputs
+    against scipy's adaptive integrator at tolerance 1e-12."""
+    rng = np.random.default_rng(1)
+    dt = 0.1
+    for _ in range(5):
+        x = random_state(rng)
+        u0 = rng.normal(size=6) * [1, 1, 1, 0.2, 0.2, 0.2] + [0, 0, -9.8, 0, 0, 0]
+        u1 = u0 + rng.normal(size=6) * [0.5, 0.5, 0.5, 0.05, 0.05, 0.05]
+        rhs = lambda t, s: np.asarray(
+            flight.kinematics(jnp.asarray(s), jnp.asarray(u0 + t / dt * (u1 - u0)))
+        )
+        ref = solve_ivp(rhs, (0, dt), x, rtol=1e-12, atol=1e-12, method="DOP853").y[:, -1]
+        one = np.asarray(
+            flight.integrate_interval(jnp.asarray(x), jnp.asarray(u0), jnp.asarray(u1), dt)
+        )
+        four = np.asarray(
+            flight.integrate_interval(jnp.asarray(x), jnp.asarray(u0), jnp.asarray(u1), dt, 4)
+        )
+        err_one, err_four = np.abs(one - ref), np.abs(four - ref)
+        assert np.max(err_one[:3]) < 1e-5  # m/s
+        assert np.max(err_one[3:6]) < 1e-7  # rad
+        assert err_one[6] < 1e-5  # m
+        # fourth order: 4 substeps shrink the error by about 4^4
+        assert np.max(err_four) < np.max(err_one) / 50 + 1e-12
+
+
+def test_observation_eq28_by_hand():
+    arms = flight.LeverArms(x_beta=8.0, z_beta=0.5, x_alpha=7.0, y_alpha=0.3)
+    obs = flight.FlightObservation(arms)
+    x = np.array([118.0, 2.0, 6.0, 0.1, 0.05, 1.0, 1500.0])
+    b = np.arange(1, 17) * 0.01
+    rates = np.array([0.02, -0.03, 0.04])
+    u = np.concatenate([[0.1, 0.2, -9.7], rates, np.zeros(6)])
+    z = np.asarray(obs(jnp.asarray(np.concatenate([x, b])), jnp.asarray(u)))
+    p, q, r = rates + b[3:6]
+    expect = [
+        (1 + b[12]) * np.sqrt(118.0**2 + 4 + 36) + b[6],
+        (1 + b[13]) * np.arctan((2.0 + r * 8.0 - p * 0.5) / 118.0) + b[7],
+        (1 + b[14]) * np.arctan((6.0 - q * 7.0 + p * 0.3) / 118.0) + b[8],
+        0.05 + b[9],
+        0.1 + b[10],
+        (1 + b[15]) * 1500.0 + b[11],
+    ]
+    np.testing.assert_allclose(z, expect, rtol=1e-13)
+
+
+def _model_and_point(rng, dtype=jnp.float64):
+    model = flight.flight_model(
+        0.1,
+        jnp.full(6, 0.02, dtype),
+        jnp.full(6, 0.01, dtype),
+        flight.LeverArms(8.0, 0.5, 8.0, 0.5),
+    )
+    x = jnp.asarray(np.concatenate([random_state(rng), rng.normal(size=16) * 0.01]), dtype)
+    u = jnp.asarray(
+        np.tile([0.5, 0.1, -9.6, 0.05, -0.02, 0.03], 2) + rng.normal(size=12) * 0.05, dtype
+    )
+    return model, x, u
+
+
+def _central_difference(fun, x, eps):
+    cols = [(fun(x + eps * e) - fun(x - eps * e)) / (2 * eps) for e in np.eye(x.shape[0])]
+    return np.stack(cols, axis=1)
+
+
+def test_jacobians_match_finite_differences():
+    rng = np.random.default_rng(2)
+    model, x, u = _model_and_point(rng)
+    mean, F, G, Q = model.transition(x, u, 0)
+    y, H, R = model.observation(x, u, 0)
+    scale = np.concatenate([[1.0] * 3, [1e-3] * 3, [1.0], [1e-3] * 16])
+    f_jit, h_jit = jax.jit(model.f), jax.jit(model.h)
+    f = lambda z: np.asarray(f_jit(jnp.asarray(z), u))
+    F_fd = (
+        _central_difference(lambda d: f(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale
+    )
+    # atol: round-off of h ~ 2000 m over a step of 1e-6 is ~ 2e-7
+    np.testing.assert_allclose(F, F_fd, rtol=1e-6, atol=1e-6)
+    G_fd = _central_difference(lambda v: np.asarray(f_jit(x, jnp.asarray(v))), np.asarray(u), 1e-4)
+    np.testing.assert_allclose(G, G_fd, rtol=1e-6, atol=1e-8)
+    h = lambda z: np.asarray(h_jit(jnp.asarray(z), u))
+    H_fd = (
+        _central_difference(lambda d: h(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale
+    )
+    np.testing.assert_allclose(H, H_fd, rtol=1e-6, atol=1e-9)
+    # parameters are constants, the process noise reaches only the kinematic states
+    np.testing.assert_array_equal(np.asarray(F)[N_KIN:], np.eye(N_STATE)[N_KIN:])
+    np.testing.assert_array_equal(np.asarray(G)[N_KIN:], 0.0)
+    assert Q.shape == (12, 12) and R.shape == (6, 6)
+
+
+def test_input_noise_cov_gives_interval_average_variance():
+    """blockdiag(Qc, Qc) on [u_k, u_k+1] makes G Q G^T the covariance of the state change caused by
+    white sample noise (checked by Monte Carlo of f(x, u + noise)); for accelerometer noise alone it
+    is about dt^2 Qc / 2 on the velocities."""
+    rng = np.random.default_rng(3)
+    _, x, u = _model_and_point(rng)
+    input_std = jnp.asarray([0.02, 0.03, 0.05, 1e-9, 1e-9, 1e-9])
+    model = flight.flight_model(0.1, input_std, jnp.full(6, 0.01))
+    _, _, G, Q = model.transition(x, u, 0)
+    keys = jax.random.split(jax.random.key(0), 20000)
+    noise = jax.vmap(lambda k: jnp.linalg.cholesky(Q) @ jax.random.normal(k, (12,)))(keys)
+    draws = jax.vmap(lambda w: model.sample_transition(x, u, 0, w))(noise)
+    emp = np.cov(np.asarray(draws[:, :3]).T)
+    lin = np.asarray(G @ Q @ G.T)[:3, :3]
+    np.testing.assert_allclose(np.diag(emp), np.diag(lin), rtol=0.05)  # 3.5 sigma of the estimate
+    np.testing.assert_allclose(np.diag(lin), 0.1**2 * np.asarray(input_std[:3]) ** 2 / 2, rtol=0.01)
+
+
+def test_interval_inputs_pairs_samples():
+    u = jnp.arange(18.0).reshape(3, 6)
+    pairs = flight.interval_inputs(u)
+    np.testing.assert_array_equal(pairs[0], np.concatenate([u[0], u[1]]))
+    np.testing.assert_array_equal(pairs[2], np.concatenate([u[2], u[2]]))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_model_under_jit_vmap_grad_keeps_dtype(dtype):
+    rng = np.random.default_rng(4)
+    model, x, u = _model_and_point(rng, dtype)
+    mean, F, G, Q = jax.jit(lambda m, x, u: m.transition(x, u, 0))(model, x, u)
+    assert mean.dtype == F.dtype == G.dtype == Q.dtype == dtype
+    ys = jax.vmap(model.h, in_axes=(0, None))(jnp.stack([x, x]), u)
+    assert ys.shape == (2, 6) and ys.dtype == dtype
+    grad = jax.grad(lambda z: jnp.sum(model.f(z, u)[:3]))(x)
+    assert grad.dtype == dtype and bool(jnp.all(jnp.isfinite(grad)))
+    np.testing.assert_allclose(
+        grad, np.sum(np.asarray(F, np.float64)[:3], axis=0), rtol=1e-4, atol=1e-6
+    )
