@@ -29,7 +29,9 @@ def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=F
     if not hasattr(arr, "shape"):
         arr = np.asarray(arr)
     if arr.ndim not in (ndim, ndim + 1):
-        raise ValueError(f"{name}: expected {ndim} dims (or {ndim + 1} with a time axis), got shape {arr.shape}")
+        raise ValueError(
+            f"{name}: expected {ndim} dims (or {ndim + 1} with a time axis), got shape {arr.shape}"
+        )
     trailing = arr.shape[arr.ndim - ndim :]
     if shape is not None:
         for want, got in zip(shape, trailing, strict=True):
@@ -48,9 +50,13 @@ def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=F
             raise ValueError(f"{name}: must be symmetric")
         eig = np.linalg.eigvalsh(0.5 * (a + np.swapaxes(a, -1, -2)))
         if spd and np.min(eig) <= 0:
-            raise ValueError(f"{name}: must be positive definite (smallest eigenvalue {np.min(eig):.3g})")
+            raise ValueError(
+                f"{name}: must be positive definite (smallest eigenvalue {np.min(eig):.3g})"
+            )
         if psd and np.min(eig) < -1e-12 * scale:
-            raise ValueError(f"{name}: must be positive semidefinite (smallest eigenvalue {np.min(eig):.3g})")
+            raise ValueError(
+                f"{name}: must be positive semidefinite (smallest eigenvalue {np.min(eig):.3g})"
+            )
 
 
 def check_sequence(name: str, value, length=None, dim=None):
@@ -68,7 +74,9 @@ def check_sequence(name: str, value, length=None, dim=None):
 
 def _time_length(name, arr, T):
     if arr is not None and np.ndim(arr) == 3 and arr.shape[0] < T:
-        raise ValueError(f"{name}: time-varying with {arr.shape[0]} steps, fewer than the {T} measurements")
+        raise ValueError(
+            f"{name}: time-varying with {arr.shape[0]} steps, fewer than the {T} measurements"
+        )
 
 
 def check_filter_arguments(model, ys, inputs, init):
@@ -112,7 +120,9 @@ def check_model_dimensions(model, x, u, m):
         mean, F, G, Q = jax.eval_shape(model.transition, x, u, 0)
         y_mean, H, _ = jax.eval_shape(model.observation, x, u, 0)
     except Exception as err:  # noqa: BLE001 - reported with the argument's name
-        raise ValueError(f"model: cannot be evaluated at init.mean ({type(err).__name__}: {err})") from err
+        raise ValueError(
+            f"model: cannot be evaluated at init.mean ({type(err).__name__}: {err})"
+        ) from err
     expected = {
         "model transition mean": (mean.shape, (n,)),
         "model transition Jacobian F": (F.shape, (n, n)),

@@ -13,21 +13,32 @@ from jaxest import studies
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="jaxest", description="jaxest: differentiable estimation in JAX")
+    parser = argparse.ArgumentParser(
+        prog="jaxest", description="jaxest: differentiable estimation in JAX"
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     rep = sub.add_parser(
         "reproduce",
         help="run the papers' studies",
         description="Run the papers' studies; each writes figures (PNG) and tables (Markdown + JSON).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
-        epilog="studies:\n" + "\n".join(f"  {name:10s} {_describe(name)}" for name in studies.STUDIES),
+        epilog="studies:\n"
+        + "\n".join(f"  {name:10s} {_describe(name)}" for name in studies.STUDIES),
     )
-    rep.add_argument("study", nargs="+", choices=["all", *studies.STUDIES], help="study name(s) or 'all'")
-    rep.add_argument("--out", type=Path, default=Path("results"), help="output directory (default: results)")
-    rep.add_argument("--runs", type=int, default=None, help="Monte Carlo runs (default: each study's own)")
+    rep.add_argument(
+        "study", nargs="+", choices=["all", *studies.STUDIES], help="study name(s) or 'all'"
+    )
+    rep.add_argument(
+        "--out", type=Path, default=Path("results"), help="output directory (default: results)"
+    )
+    rep.add_argument(
+        "--runs", type=int, default=None, help="Monte Carlo runs (default: each study's own)"
+    )
     rep.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
     rep.add_argument("--quick", action="store_true", help="small, fast versions of every study")
-    rep.add_argument("--data", type=Path, default=None, help="flight data directory (svd-ekf study)")
+    rep.add_argument(
+        "--data", type=Path, default=None, help="flight data directory (svd-ekf study)"
+    )
     return parser
 
 
@@ -52,8 +63,15 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         print(f"== {name}: {_describe(name)}", file=sys.stderr)
         module = studies.load(name)
-        module.run(args.out, runs=args.runs, seed=args.seed, quick=args.quick, options={"data": args.data})
-        index[name] = {"seconds": round(time.perf_counter() - start, 2), "dir": str(args.out / name)}
-        print(f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}", file=sys.stderr)
+        module.run(
+            args.out, runs=args.runs, seed=args.seed, quick=args.quick, options={"data": args.data}
+        )
+        index[name] = {
+            "seconds": round(time.perf_counter() - start, 2),
+            "dir": str(args.out / name),
+        }
+        print(
+            f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}", file=sys.stderr
+        )
     (args.out / "index.json").write_text(json.dumps(index, indent=2))
     return 0

@@ -1,0 +1,67 @@
+"""Small linear-algebra pieces shared by the estimators.
+
+The eigen/SVD factorisation P = U diag(D)^2 U^T is not unique when eigenvalues repeat (P0 = c I,
+isotropic Q), and ``jnp.linalg.svd``'s derivative divides by differences of singular values, so it
+is NaN there. Estimators whose outputs depend on P only through U D^2 U^T are differentiated at the
+covariance level instead: :func:`factor_psd` and :func:`cov_tangent_to_factor` choose, for a
+covariance tangent dP, the factor tangent dU = 1/2 dP U D^-2, dD = 0, which reproduces dP exactly
+(dU D^2 U^T + U D^2 dU^T = dP) and is finite whatever the multiplicities (NOTES.md section 1).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+
+def symmetrize(P):
+    """(P + P^T) / 2 over the last two axes."""
+    return 0.5 * (P + jnp.swapaxes(P, -1, -2))
+
+
+def cov_from_factor(U, D):
+    """P = U diag(D)^2 U^T."""
+    return (U * D**2) @ U.T
+
+
+def factor_tangent_to_cov(U, D, dU, dD):
+    """The covariance tangent dP of P = U D^2 U^T for factor tangents (dU, dD)."""
+    half = (dU * D**2) @ U.T + (U * (D * dD)) @ U.T
+    return half + half.T
+
+
+def cov_tangent_to_factor(U, D, dP):
+    """A factor tangent (dU, dD) whose covariance tangent is ``dP`` (see module docstring)."""
+    return 0.5 * dP @ (U / D**2), jnp.zeros_like(D)
+
+
+@jax.custom_jvp
+def factor_psd(P):
+    """U, D with P = U diag(D)^2 U^T (U orthogonal, D >= 0 descending) by a symmetric SVD."""
+    w, U = jnp.linalg.eigh(symmetrize(P))
+    return U[:, ::-1], jnp.sqrt(jnp.clip(w[::-1], 0.0))
+
+
+@factor_psd.defjvp
+def _factor_psd_jvp(primals, tangents):
+    (P,), (dP,) = primals, tangents
+    U, D = factor_psd(P)
+    return (U, D), cov_tangent_to_factor(U, D, symmetrize(dP))
+
+
+def right_svd(A):
+    """Singular values s and right singular vectors V of a tall A, so A^T A = V diag(s)^2 V^T."""
+    _, s, Vt = jnp.linalg.svd(A, full_matrices=False)
+    return s, Vt.T
+
+
+def cho_solve_lower(L, B):
+    """Solve (L L^T) X = B for lower-triangular L."""
+    Z = jax.scipy.linalg.solve_triangular(L, B, lower=True)
+    return jax.scipy.linalg.solve_triangular(L.T, Z, lower=False)
+
+
+def inv_spd(P):
+    """Inverse of a symmetric positive definite matrix through its Cholesky factor."""
+    L = jnp.linalg.cholesky(P)
+    return symmetrize(cho_solve_lower(L, jnp.eye(P.shape[-1], dtype=P.dtype)))

@@ -1,0 +1,316 @@
+"""Steady-state Kalman machinery and the fixed-interval Wiener smoother (Sun & Cui 2003)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import enable_x64
+
+import jaxest as je
+from jaxest.filters.kalman import KalmanFilter
+from jaxest.smoothers.steady_state import (
+    SteadyStateKalmanFilter,
+    arma_innovation_model,
+    characteristic_polynomial,
+    fixed_point_smooth,
+    steady_state_gain,
+    steady_state_smooth,
+)
+from jaxest.smoothers.wiener import WienerSmoother, lagged_sum, wiener_smooth
+from jaxest.systems.wiener_example import ARBITRARY_START, PAPER, PRINTED_ADJ_K, paper_model
+
+wiener_smooth_jit = jax.jit(wiener_smooth, static_argnames=("start", "end_term"))
+steady_state_smooth_jit = jax.jit(steady_state_smooth)
+
+
+def simulate(model, T, seed=0):
+    n = model.F.shape[0]
+    return je.simulate(model, jnp.zeros(n, model.F.dtype), T, jax.random.key(seed)).y
+
+
+def three_state_model(Phi_diag=(0.95, 0.6, 0.1)):
+    """x in R^3, y in R^2, diagonal dynamics mixed by a fixed rotation (distinct real eigenvalues)."""
+    rng = np.random.default_rng(4)
+    V = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    F = V @ np.diag(Phi_diag) @ V.T
+    H = rng.normal(size=(2, 3))
+    return je.LinearGaussian(F=jnp.asarray(F), H=jnp.asarray(H), Q=0.3 * jnp.eye(3), R=jnp.eye(2))
+
+
+def test_paper_numbers_to_printed_decimals():
+    with enable_x64(True):
+        gain = steady_state_gain(paper_model())
+        arma = arma_innovation_model(gain)
+        lam = WienerSmoother.from_model(paper_model()).eigenvalues()
+        got = {
+            "Sigma": gain.Sigma,
+            "K": gain.K[:, 0],
+            "eigenvalues": lam.real,
+            "ar_coeffs": arma.ar[:, 0, 0],
+            "ma_coeffs": arma.ma,
+            "smoother_transition": gain.smoother_transition,
+            "innovation_gain": gain.innovation_gain[:, 0],
+        }
+        for name, value in got.items():
+            np.testing.assert_allclose(
+                np.round(np.asarray(value), 4), PAPER[name], atol=1e-12, err_msg=name
+            )
+        assert np.all(np.asarray(lam.imag) == 0)
+
+
+def test_printed_adjugate_term_has_flipped_off_diagonal_signs():
+    """Eq 28's q^-1 coefficient of adj(I - q^-1 Psi_f) K is reproduced only with the adjugate's
+    off-diagonal signs flipped; the true coefficient satisfies A = Psi - H Phi adj K q^-1 (eq 7)."""
+    with enable_x64(True):
+        gain = steady_state_gain(paper_model())
+        arma = arma_innovation_model(gain)
+        adj_K = np.einsum("jab,b->ja", arma.adj, gain.K[:, 0])
+        np.testing.assert_allclose(np.round(adj_K[0], 4), PRINTED_ADJ_K[0], atol=1e-12)
+        np.testing.assert_allclose(adj_K[1], [-0.4496, -0.1387], atol=1e-4)
+        flipped = np.asarray(arma.adj[1]) * np.array([[1, -1], [-1, 1]])
+        np.testing.assert_allclose(
+            np.round(flipped @ gain.K[:, 0], 4), PRINTED_ADJ_K[1], atol=1e-12
+        )
+
+
+def test_characteristic_polynomial_against_numpy():
+    with enable_x64(True):
+        M = np.random.default_rng(0).normal(size=(4, 4))
+        coeffs, adj = characteristic_polynomial(jnp.asarray(M))
+        np.testing.assert_allclose(coeffs, np.poly(M), rtol=1e-10, atol=1e-12)
+        z = 0.37
+        adj_at_z = sum(adj[j] * z**j for j in range(4))
+        I_Mz = np.eye(4) - M * z
+        np.testing.assert_allclose(adj_at_z, np.linalg.det(I_Mz) * np.linalg.inv(I_Mz), rtol=1e-10)
+
+
+@pytest.mark.parametrize("make_model", [paper_model, three_state_model], ids=["paper", "3-state"])
+def test_arma_innovation_model_lemma2(make_model):
+    """A(q^-1) y(s) = Psi(q^-1) eps(s) for every s > n (eq 6), eps from the steady-state filter."""
+    with enable_x64(True):
+        model = make_model()
+        n = model.F.shape[0]
+        ys = simulate(model, 60)
+        arma = arma_innovation_model(steady_state_gain(model))
+        eps = je.run(
+            SteadyStateKalmanFilter(), model, ys, None, je.Gaussian(jnp.ones(n), jnp.eye(n))
+        ).innovation
+        lhs = lagged_sum(arma.ar, ys)
+        rhs = lagged_sum(arma.ma[:, None, None] * jnp.eye(ys.shape[1]), eps)
+        np.testing.assert_allclose(lhs[1:], rhs[1:], atol=1e-11)
+
+
+def numpy_rts(model, ys, m0, P0):
+    """Plain NumPy Kalman filter + Rauch-Tung-Striebel smoother (an independent reference)."""
+    F, H, R = (np.asarray(a) for a in (model.F, model.H, model.R))
+    G = np.asarray(model.noise_gain(0))
+    Q = G @ np.asarray(model.Q) @ G.T
+    x, P = np.asarray(m0), np.asarray(P0)
+    xf, Pf, xp, Pp = [], [], [], []
+    for y in np.asarray(ys):
+        xp.append(x), Pp.append(P)
+        S = H @ P @ H.T + R
+        K = np.linalg.solve(S, H @ P).T
+        x, P = x + K @ (y - H @ x), P - K @ S @ K.T
+        xf.append(x), Pf.append(P)
+        x, P = F @ x, F @ P @ F.T + Q
+    xs = [xf[-1]]
+    for t in range(len(ys) - 2, -1, -1):
+        C = Pf[t] @ F.T @ np.linalg.inv(Pp[t + 1])
+        xs.insert(0, xf[t] + C @ (xs[0] - xp[t + 1]))
+    return np.array(xs)
+
+
+@pytest.mark.parametrize("make_model", [paper_model, three_state_model], ids=["paper", "3-state"])
+def test_steady_state_smoother_is_rts_started_in_steady_state(make_model):
+    """With P(0|-1) = Sigma the Kalman filter never leaves its steady state, so the RTS smoother
+    and eq 15 coincide."""
+    with enable_x64(True):
+        model = make_model()
+        n = model.F.shape[0]
+        ys = simulate(model, 80, seed=1)
+        m0 = jnp.linspace(-1.0, 1.0, n)
+        Sigma = steady_state_gain(model).Sigma
+        ours = steady_state_smooth_jit(model, ys, je.Gaussian(m0, jnp.eye(n)))
+        np.testing.assert_allclose(ours.mean, numpy_rts(model, ys, m0, Sigma), atol=1e-10)
+
+
+def test_fixed_point_smoother_lemma3_term_by_term():
+    """Eq 8 accumulated term by term reaches eq 15's x(t|N) (computed by the backward recursion)."""
+    with enable_x64(True):
+        model = three_state_model()
+        ys = simulate(model, 50, seed=2)
+        ss = steady_state_smooth_jit(model, ys, je.Gaussian(jnp.zeros(3), jnp.eye(3)))
+        gain = jax.jit(steady_state_gain)(model)
+        for t in (0, 17, 48, 49):
+            path = jax.jit(fixed_point_smooth)(gain, ss.filtered_mean[t], ss.innovation[t + 1 :])
+            np.testing.assert_allclose(path[-1], ss.mean[t], atol=1e-12)
+            np.testing.assert_allclose(path[0], ss.filtered_mean[t], atol=0)
+
+
+def test_steady_state_filter_matches_kalman_filter_from_sigma():
+    with enable_x64(True):
+        model = paper_model()
+        ys = simulate(model, 40)
+        Sigma = steady_state_gain(model).Sigma
+        prior = je.Gaussian(jnp.array([0.5, -0.5]), Sigma)
+        ours = je.filter(SteadyStateKalmanFilter(), model, ys, init=prior)
+        ref = je.filter(KalmanFilter(), model, ys, init=prior)
+        for field in (
+            "mean",
+            "cov",
+            "predicted_mean",
+            "predicted_cov",
+            "innovation",
+            "loglik_terms",
+        ):
+            np.testing.assert_allclose(
+                getattr(ours, field), getattr(ref, field), atol=1e-10, err_msg=field
+            )
+        assert np.all(np.asarray(ours.status) == 0)
+
+
+@pytest.mark.parametrize("make_model", [paper_model, three_state_model], ids=["paper", "3-state"])
+def test_wiener_with_optimal_start_equals_eq15_over_the_whole_interval(make_model):
+    with enable_x64(True):
+        model = make_model()
+        n = model.F.shape[0]
+        ys = simulate(model, 301, seed=3)
+        m0 = jnp.zeros(n)
+        reference = steady_state_smooth_jit(model, ys, je.Gaussian(m0, jnp.eye(n))).mean
+        exact = wiener_smooth_jit(model, ys, m0, start="optimal")
+        assert np.max(np.abs(exact - reference)) < 1e-8
+        # The theorem as printed (no end term) is off near t = N only, like |lambda_max|^(N - t).
+        printed = wiener_smooth_jit(model, ys, m0, start="optimal", end_term=False)
+        error = np.max(np.abs(printed - reference), axis=1)
+        assert error[-1] > 1e-2
+        assert np.max(error[:100]) < 1e-6
+
+
+def test_eq13_start_decays_like_the_far_eigenvalue_and_arbitrary_like_the_near_one():
+    with enable_x64(True):
+        model = paper_model()
+        ys = simulate(model, 301, seed=5)
+        smoother = WienerSmoother.from_model(model)
+        lam = np.asarray(smoother.eigenvalues().real)
+        optimal, final = smoother.optimal_start(ys, jnp.zeros(2))
+        reference = smoother.smooth(ys, optimal, final)
+        arbitrary = jnp.asarray(ARBITRARY_START)
+        chosen = smoother.eq13_initial_values(arbitrary, optimal)
+        np.testing.assert_allclose(chosen[0], arbitrary[0])
+        np.testing.assert_allclose(
+            chosen[1], optimal[1] + lam[1] * (arbitrary[0] - optimal[0]), rtol=1e-12
+        )
+        delta13 = np.asarray(smoother.smooth(ys, chosen, final) - reference)
+        np.testing.assert_allclose(delta13[1:8] / delta13[:7], lam[1], rtol=1e-6)
+        delta = np.asarray(smoother.smooth(ys, arbitrary, final) - reference)
+        np.testing.assert_allclose(delta[61:100] / delta[60:99], lam[0], rtol=1e-6)
+
+
+def vandermonde_eq23(lam_far, k, delta_free):
+    """Eqs 22-23 literally: alpha^(j) = V^-1 [lambda^(n_d-k+j)] and delta(n_d-k+j) = sum alpha delta(l)."""
+    nf = len(lam_far)
+    V = np.vander(lam_far, nf, increasing=True)
+    rows = []
+    for j in range(k):
+        alpha = np.linalg.solve(V, lam_far ** (nf + j))
+        rows.append(alpha @ delta_free)
+    return np.array(rows)
+
+
+@pytest.mark.parametrize("radius", [0.55, 0.3], ids=["one-near", "two-near"])
+def test_eq13_matches_the_vandermonde_formula(radius):
+    with enable_x64(True):
+        model = three_state_model()
+        smoother = WienerSmoother.from_model(model)
+        lam = np.asarray(smoother.eigenvalues().real)
+        far = lam[np.abs(lam) <= radius]
+        k = 3 - len(far)
+        rng = np.random.default_rng(0)
+        optimal, arbitrary = rng.normal(size=(3, 3)), rng.normal(size=(3, 3))
+        chosen = np.asarray(
+            smoother.eq13_initial_values(jnp.asarray(arbitrary), jnp.asarray(optimal), radius)
+        )
+        free = arbitrary[: 3 - k] - optimal[: 3 - k]
+        np.testing.assert_allclose(chosen[: 3 - k], arbitrary[: 3 - k])
+        np.testing.assert_allclose(
+            chosen[3 - k :] - optimal[3 - k :], vandermonde_eq23(far, k, free), rtol=1e-9
+        )
+
+
+def oscillator_model():
+    """A lightly damped oscillator plus a fast state: Psi_f has a complex pair near the unit circle."""
+    c, s = np.cos(0.3), np.sin(0.3)
+    F = np.zeros((3, 3))
+    F[:2, :2] = 0.995 * np.array([[c, -s], [s, c]])
+    F[2, 2] = 0.2
+    F[2, 0] = 0.5
+    H = np.array([[0.0, 0.0, 1.0]])
+    return je.LinearGaussian(F=jnp.asarray(F), H=jnp.asarray(H), Q=0.01 * jnp.eye(3), R=jnp.eye(1))
+
+
+def test_eq13_cancels_a_complex_near_pair():
+    with enable_x64(True):
+        model = oscillator_model()
+        smoother = WienerSmoother.from_model(model)
+        lam = np.asarray(smoother.eigenvalues())
+        assert abs(lam[0].imag) > 0.05 and abs(lam[0]) > 0.5 and abs(lam[2]) < 0.5  # the setting
+        ys = simulate(model, 200, seed=6)
+        optimal, final = smoother.optimal_start(ys, jnp.zeros(3))
+        reference = smoother.smooth(ys, optimal, final)
+        arbitrary = jnp.full((3, 3), 5.0)
+        delta = np.asarray(
+            smoother.smooth(ys, smoother.eq13_initial_values(arbitrary, optimal), final) - reference
+        )
+        np.testing.assert_allclose(delta[1:6] / delta[:5], lam[2].real, rtol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_jit_vmap_grad(dtype):
+    with enable_x64(dtype == "float64"):
+        model = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), paper_model())
+        keys = jax.random.split(jax.random.key(0), 3)
+        ys = jax.vmap(lambda k: je.simulate(model, jnp.zeros(2, dtype), 120, k).y)(keys)
+        m0 = jnp.zeros(2, dtype)
+        run = jax.jit(
+            jax.vmap(lambda y: wiener_smooth(model, y, m0, jnp.ones((2, 2), dtype), start="eq13"))
+        )
+        xs = run(ys)
+        assert xs.dtype == jnp.dtype(dtype) and xs.shape == (3, 120, 2)
+        with enable_x64(True):
+            ref = wiener_smooth(
+                paper_model(),
+                jnp.asarray(ys[1], jnp.float64),
+                jnp.zeros(2),
+                jnp.ones((2, 2)),
+                start="eq13",
+            )
+        np.testing.assert_allclose(xs[1], ref, atol=1e-4 if dtype == "float32" else 1e-10)
+
+        def loss(r):
+            noisy = je.LinearGaussian(F=model.F, H=model.H, Q=model.Q, R=r * model.R, G=model.G)
+            return jnp.sum(wiener_smooth(noisy, ys[0], m0, start="optimal") ** 2)
+
+        g = jax.jit(jax.grad(loss))(jnp.asarray(1.3, dtype))
+        assert g.dtype == jnp.dtype(dtype) and np.isfinite(g)
+        if dtype == "float64":
+            fd = (loss(1.3 + 1e-6) - loss(1.3 - 1e-6)) / 2e-6
+            np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_bad_arguments_name_the_argument():
+    model = paper_model()
+    ys = jnp.zeros((20, 1))
+    with pytest.raises(ValueError, match="^start:"):
+        wiener_smooth(model, ys, jnp.zeros(2), start="best")
+    with pytest.raises(ValueError, match="^initial_values:"):
+        wiener_smooth(model, ys, jnp.zeros(2), jnp.zeros((3, 2)), start="eq13")
+    with pytest.raises(ValueError, match="^prior_mean:"):
+        wiener_smooth(model, ys, None, start="optimal")
+    with pytest.raises(ValueError, match="^ys:"):
+        wiener_smooth(model, jnp.zeros((20, 2)), jnp.zeros(2))
+    with_input = je.LinearGaussian(
+        F=model.F, H=model.H, Q=model.Q, R=model.R, G=model.G, B=jnp.ones((2, 1))
+    )
+    with pytest.raises(ValueError, match="^model.B:"):
+        steady_state_gain(with_input)
