@@ -404,3 +404,15 @@ def test_aircraft_models():
         assert np.linalg.matrix_rank(obsv) == 4
     with pytest.raises(ValueError, match="name"):
         aircraft("concorde")
+
+
+def test_smallest_eigenvalue_closed_forms():
+    from jaxest.observers.excitation import smallest_eigenvalue
+
+    rng = np.random.default_rng(0)
+    for p in (1, 2, 3):
+        X = rng.normal(size=(p, p))
+        W = X @ X.T
+        np.testing.assert_allclose(
+            smallest_eigenvalue(jnp.asarray(W)), np.linalg.eigvalsh(W)[0], rtol=1e-5, atol=1e-6
+        )

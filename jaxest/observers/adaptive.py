@@ -274,11 +274,11 @@ class AdaptiveObserver(eqx.Module):
             window=excitation.empty_window(self.excitation_window, p, dtype),
         )
 
-    def gain(self, P, C):
+    def gain(self, P, C, R_inv):
         """K(t): fixed, or P C^T R^{-1} (eq 31)."""
         if self.K is not None:
             return self.K
-        return jnp.linalg.solve(self.R, C @ P).T
+        return P @ C.T @ R_inv
 
     def step(self, model: ContinuousLTV, state: AdaptiveState, y, u):
         """Estimates at t_k, then integrate eqs 12, 17, 32 over [t_k, t_k + dt]."""
@@ -289,12 +289,14 @@ class AdaptiveObserver(eqx.Module):
             state.window, self.excitation_threshold
         )
         output = AdaptiveResult(state.x, state.theta, state.Gamma, e, level, status)
+        # one inverse per sample, not one solve per Runge-Kutta stage (R is small, SPD)
+        R_inv = None if self.K is not None else jnp.linalg.inv(self.R)
 
         def field(s, z):
             x, theta, Gamma, P, _ = z
             A, B, C = model.matrices(s)
             psi = model.psi(s, u, y)
-            K = self.gain(P, C)
+            K = self.gain(P, C, R_inv)
             CG = C @ Gamma
             adapt = self.M @ (CG.T @ (self.Sigma @ e))  # M Gamma^T C^T Sigma e
             dx = A @ x + B @ u + psi @ theta + K @ e + Gamma @ adapt
@@ -302,7 +304,7 @@ class AdaptiveObserver(eqx.Module):
             dP = None
             if P is not None:
                 PCt = P @ C.T
-                dP = A @ P + P @ A.T - PCt @ jnp.linalg.solve(self.R, PCt.T) + self.Q
+                dP = A @ P + P @ A.T - PCt @ R_inv @ PCt.T + self.Q
             return dx, adapt, dGamma, dP, CG.T @ self.Sigma @ CG
 
         p = state.theta.shape[0]

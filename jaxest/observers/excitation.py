@@ -51,10 +51,19 @@ def gramian(buffer: ExcitationWindow) -> Float[Array, "p p"]:
     return jnp.sum(buffer.increments, axis=0)
 
 
+def smallest_eigenvalue(W: Float[Array, "p p"]) -> Float[Array, ""]:
+    """Smallest eigenvalue of a symmetric W; closed form for p <= 2 (cheap inside a scan)."""
+    if W.shape[0] == 1:
+        return W[0, 0]
+    if W.shape[0] == 2:
+        mean, half_gap = 0.5 * (W[0, 0] + W[1, 1]), 0.5 * (W[0, 0] - W[1, 1])
+        return mean - jnp.sqrt(half_gap**2 + W[0, 1] * W[1, 0])
+    return jnp.linalg.eigvalsh(0.5 * (W + W.T))[0]
+
+
 def excitation_level(buffer: ExcitationWindow) -> Float[Array, ""]:
     """Smallest eigenvalue of W (a diagnostic: no gradient flows through it)."""
-    W = jax.lax.stop_gradient(gramian(buffer))
-    return jnp.linalg.eigvalsh(0.5 * (W + W.T))[0]
+    return smallest_eigenvalue(jax.lax.stop_gradient(gramian(buffer)))
 
 
 def excitation_status(buffer: ExcitationWindow, threshold: float) -> Int[Array, ""]:
