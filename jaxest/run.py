@@ -83,12 +83,14 @@ def check_finite_status(*arrays) -> Int[Array, ""]:
     return jnp.where(finite, Status.OK, Status.NONFINITE).astype(jnp.int32)
 
 
+@eqx.filter_jit
 def run(estimator, model, ys, inputs=None, prior: Any = None):
     """Run ``estimator`` over the measurement sequence ``ys`` (leading axis = time) with one
     ``lax.scan`` and return ``estimator.result(outputs, final_state)``.
 
     ``inputs`` (leading axis = time, same length as ``ys``) is passed to ``step`` as ``u_k``;
-    ``None`` means no inputs. ``prior`` is whatever ``estimator.init`` takes.
+    ``None`` means no inputs. ``prior`` is whatever ``estimator.init`` takes. Compiled once per
+    estimator, model structure and shapes (``eqx.filter_jit``); inside a user's ``jit`` it inlines.
     """
     state = estimator.init(model, prior)
 

@@ -1,0 +1,263 @@
+"""Every Gaussian filter against a NumPy Kalman filter, against each other, and under jit, vmap
+and grad in float32 and float64."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxest as je
+from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF, InformationFilter, KalmanFilter, SquareRootKF
+from tests.reference import kalman_filter, random_system
+
+FILTERS = [KalmanFilter, EKF, InformationFilter, SquareRootKF, SVDEKF, ImprovedSVDKF]
+IDS = [f.__name__ for f in FILTERS]
+
+
+def linear_problem(seed=0, n=4, m=2, T=40, correlated_R=True, dtype=jnp.float64):
+    rng = np.random.default_rng(seed)
+    F, H, Q, R = random_system(rng, n, m, correlated_R)
+    model = je.LinearGaussian(*(jnp.asarray(a, dtype) for a in (F, H, Q, R)))
+    prior = je.Gaussian(jnp.asarray(rng.normal(size=n), dtype), jnp.asarray(np.eye(n) * 2.0, dtype))
+    sim = je.simulate(model, prior, T, jax.random.PRNGKey(seed))
+    return model, prior, sim
+
+
+@pytest.mark.parametrize("Filter", FILTERS, ids=IDS)
+def test_matches_numpy_kalman_filter(Filter):
+    model, prior, sim = linear_problem(seed=1)
+    ys = np.array(sim.y)
+    ys[3, 0] = np.nan  # a single missing entry
+    ys[7, :] = np.nan  # a whole missing vector
+    res = je.filter(Filter(), model, jnp.asarray(ys), init=prior)
+    means, covs, pmeans, pcovs, loglik = kalman_filter(
+        np.asarray(model.F), np.asarray(model.H), np.asarray(model.Q), np.asarray(model.R),
+        np.asarray(prior.mean), np.asarray(prior.cov), ys,
+    )  # fmt: skip
+    np.testing.assert_allclose(res.mean, means, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(res.cov, covs, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(res.predicted_mean, pmeans, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(res.predicted_cov, pcovs, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(res.loglik, loglik, rtol=1e-9)
+    assert np.all(np.asarray(res.status) == je.Status.OK)
+
+
+@pytest.mark.parametrize("seed", [2, 3, 4])
+def test_factored_filters_agree_with_kf_on_random_systems(seed):
+    model, prior, sim = linear_problem(seed=seed, n=5, m=3, T=30)
+    ref = je.filter(KalmanFilter(), model, sim.y, init=prior)
+    for Filter in FILTERS[1:]:
+        res = je.filter(Filter(), model, sim.y, init=prior)
+        for name in ("mean", "cov", "innovation", "innovation_cov", "loglik_terms"):
+            np.testing.assert_allclose(
+                getattr(res, name),
+                getattr(ref, name),
+                rtol=1e-9,
+                atol=1e-11,
+                err_msg=f"{Filter.__name__}.{name}",
+            )
+
+
+def test_kalman_filter_matches_dynamax():
+    dynamax = pytest.importorskip("dynamax.linear_gaussian_ssm")
+    model, prior, sim = linear_problem(seed=5, n=4, m=2, T=50)
+    params, _ = dynamax.LinearGaussianSSM(4, 2).initialize(
+        jax.random.PRNGKey(0),
+        initial_mean=prior.mean, initial_covariance=prior.cov,
+        dynamics_weights=model.F, dynamics_covariance=model.Q,
+        emission_weights=model.H, emission_covariance=model.R,
+    )  # fmt: skip
+    post = dynamax.lgssm_filter(params, sim.y)
+    res = je.filter(KalmanFilter(), model, sim.y, init=prior)
+    np.testing.assert_allclose(res.mean, post.filtered_means, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(res.cov, post.filtered_covariances, rtol=1e-8, atol=1e-9)
+    np.testing.assert_allclose(res.loglik, post.marginal_loglik, rtol=1e-9)
+
+
+def test_time_varying_model_matches_numpy():
+    rng = np.random.default_rng(6)
+    T, n, m = 25, 3, 2
+    F = np.stack([random_system(rng, n, m)[0] for _ in range(T)])
+    H = rng.normal(size=(T, m, n))
+    _, _, Q, R = random_system(rng, n, m)
+    model = je.LinearGaussian(jnp.asarray(F), jnp.asarray(H), jnp.asarray(Q), jnp.asarray(R))
+    prior = je.Gaussian(jnp.zeros(n), jnp.eye(n))
+    sim = je.simulate(model, prior, T, jax.random.PRNGKey(0))
+    means, covs, *_, loglik = kalman_filter(F, H, Q, R, np.zeros(n), np.eye(n), np.asarray(sim.y))
+    for Filter in (KalmanFilter, SVDEKF):
+        res = je.filter(Filter(), model, sim.y, init=prior)
+        np.testing.assert_allclose(res.mean, means, rtol=1e-9, atol=1e-10)
+        np.testing.assert_allclose(res.loglik, loglik, rtol=1e-9)
+
+
+def pendulum_model(dtype=jnp.float64):
+    dt = 0.05
+
+    def f(x, u):
+        return jnp.stack([x[0] + dt * x[1], x[1] - dt * 9.81 * jnp.sin(x[0])])
+
+    def h(x, u):
+        return jnp.stack([jnp.sin(x[0]), x[1] ** 2 / 10])
+
+    Q = jnp.diag(jnp.asarray([1e-4, 1e-3], dtype))
+    R = jnp.asarray([[0.01, 0.002], [0.002, 0.02]], dtype)
+    return je.NonlinearGaussian(f, h, Q, R)
+
+
+def numpy_ekf(f, jf, h, jh, Q, R, m0, P0, ys):
+    x, P, means, loglik = np.array(m0), np.array(P0), [], 0.0
+    for y in ys:
+        H = jh(x)
+        S = H @ P @ H.T + R
+        K = P @ H.T @ np.linalg.inv(S)
+        e = y - h(x)
+        x, P = x + K @ e, P - K @ S @ K.T
+        loglik += -0.5 * (
+            len(y) * np.log(2 * np.pi) + np.linalg.slogdet(S)[1] + e @ np.linalg.solve(S, e)
+        )
+        means.append(x)
+        Fj = jf(x)
+        x, P = f(x), Fj @ P @ Fj.T + Q
+    return np.array(means), loglik
+
+
+@pytest.mark.parametrize("Filter", FILTERS, ids=IDS)
+def test_ekf_matches_numpy_ekf(Filter):
+    model = pendulum_model()
+    prior = je.Gaussian(jnp.asarray([0.5, 0.0]), 0.1 * jnp.eye(2))
+    sim = je.simulate(model, prior, 60, jax.random.PRNGKey(3))
+    dt = 0.05
+    f = lambda x: np.array([x[0] + dt * x[1], x[1] - dt * 9.81 * np.sin(x[0])])
+    jf = lambda x: np.array([[1.0, dt], [-dt * 9.81 * np.cos(x[0]), 1.0]])
+    h = lambda x: np.array([np.sin(x[0]), x[1] ** 2 / 10])
+    jh = lambda x: np.array([[np.cos(x[0]), 0.0], [0.0, x[1] / 5]])
+    means, loglik = numpy_ekf(
+        f,
+        jf,
+        h,
+        jh,
+        np.asarray(model.Q),
+        np.asarray(model.R),
+        [0.5, 0.0],
+        0.1 * np.eye(2),
+        np.asarray(sim.y),
+    )
+    res = je.filter(Filter(), model, sim.y, init=prior)
+    np.testing.assert_allclose(res.mean, means, rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(res.loglik, loglik, rtol=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64], ids=["float32", "float64"])
+@pytest.mark.parametrize("Filter", FILTERS, ids=IDS)
+def test_jit_vmap_grad(Filter, dtype):
+    model, prior, sim = linear_problem(seed=7, n=3, m=2, T=20, dtype=dtype)
+    ys = jnp.stack([sim.y, sim.y * 0.5, sim.y + 0.1])
+
+    def loglik(q_scale, r_scale, y):
+        mdl = je.LinearGaussian(model.F, model.H, q_scale * model.Q, r_scale * model.R)
+        return je.run(Filter(), mdl, y, None, prior).loglik
+
+    one = jax.jit(loglik)(dtype(1.0), dtype(1.0), sim.y)
+    batch = jax.vmap(loglik, in_axes=(None, None, 0))(dtype(1.0), dtype(1.0), ys)
+    grads = jax.jit(jax.vmap(jax.grad(loglik, argnums=(0, 1)), in_axes=(None, None, 0)))(
+        dtype(1.0), dtype(1.0), ys
+    )
+    ref = je.run(KalmanFilter(), model, sim.y, None, prior).loglik
+    assert one.dtype == dtype and batch.dtype == dtype and grads[0].dtype == dtype
+    tol = 1e-4 if dtype == jnp.float32 else 1e-10
+    np.testing.assert_allclose(one, ref, rtol=tol)
+    np.testing.assert_allclose(batch[0], one, rtol=tol)
+    assert np.all(np.isfinite(np.asarray(grads)))
+    ref_grads = jax.jit(
+        jax.grad(
+            lambda q: (
+                je.run(
+                    KalmanFilter(),
+                    je.LinearGaussian(model.F, model.H, q * model.Q, model.R),
+                    sim.y,
+                    None,
+                    prior,
+                ).loglik
+            )
+        )
+    )(dtype(1.0))
+    np.testing.assert_allclose(grads[0][0], ref_grads, rtol=10 * tol)
+
+
+@pytest.mark.parametrize("Filter", FILTERS, ids=IDS)
+def test_gradients_match_finite_differences(Filter):
+    model, prior, sim = linear_problem(seed=8, n=3, m=2, T=25)
+
+    def loss(params):
+        a, q, r, p0 = params
+        F = model.F.at[0, 1].add(a)
+        mdl = je.LinearGaussian(F, model.H, model.Q + q * jnp.eye(3), model.R * r)
+        res = je.run(Filter(), mdl, sim.y, None, je.Gaussian(prior.mean, prior.cov * p0))
+        return res.loglik + jnp.sum(res.mean[-1] ** 2)  # likelihood and a loss on the outputs
+
+    x0 = jnp.asarray([0.0, 0.05, 1.2, 1.5])
+    grad = jax.jit(jax.grad(loss))(x0)
+    eps = 1e-6
+    shifts = jnp.concatenate([jnp.eye(4), -jnp.eye(4)]) * eps
+    values = jax.jit(jax.vmap(loss))(x0 + shifts)
+    fd = (values[:4] - values[4:]) / (2 * eps)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("Filter", [SVDEKF, ImprovedSVDKF], ids=["SVDEKF", "ImprovedSVDKF"])
+def test_svd_gradients_finite_with_repeated_singular_values(Filter):
+    """P0 = c I and isotropic Q: jnp.linalg.svd's own derivative is NaN there (NOTES.md 1)."""
+    model, _, sim = linear_problem(seed=9, n=3, m=2, T=20)
+
+    def loglik(Filter, q, c):
+        mdl = je.LinearGaussian(model.F, model.H, q * jnp.eye(3), model.R)
+        return je.run(Filter(), mdl, sim.y, None, je.Gaussian(jnp.zeros(3), c * jnp.eye(3))).loglik
+
+    ours = jax.grad(loglik, argnums=(1, 2))(Filter, 0.2, 3.0)
+    ekf = jax.grad(loglik, argnums=(1, 2))(EKF, 0.2, 3.0)
+    assert np.all(np.isfinite(ours))
+    np.testing.assert_allclose(ours, ekf, rtol=1e-6)
+
+    # jnp.linalg.svd's own derivative is not finite at such a point: the custom rule is needed.
+    naive = jax.grad(lambda c: jnp.sum(jnp.linalg.svd(c * jnp.eye(3))[0] ** 3))(1.0)
+    assert not np.isfinite(naive)
+
+
+def ill_conditioned(delta, dtype):
+    H = jnp.asarray([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0 + delta]], dtype)
+    model = je.LinearGaussian(
+        jnp.eye(3, dtype=dtype), H, jnp.zeros((3, 3), dtype), delta**2 * jnp.eye(2, dtype=dtype)
+    )
+    return model, je.Gaussian(jnp.zeros(3, dtype), jnp.eye(3, dtype=dtype))
+
+
+def test_svd_filters_survive_where_kf_fails():
+    """The Dyer-McReynolds test of NOTES.md section 1 at d = 1e-9 (float64)."""
+    d = 1e-9
+    exact = np.array(
+        [
+            [5 + 2 * d * (1 + d), -3, -2 - d],
+            [-3, 5 + 2 * d * (1 + d), -2 - d],
+            [-2 - d, -2 - d, 4 + d**2],
+        ]
+    )
+    exact /= 8 + 2 * d * (1 + d)
+    model, prior = ill_conditioned(d, jnp.float64)
+    y = jnp.zeros((1, 2))
+    for Filter in (SVDEKF, ImprovedSVDKF):
+        res = je.run(Filter(), model, y, None, prior)
+        assert np.linalg.norm(res.cov[0] - exact) / np.linalg.norm(exact) < 1e-5
+    kf = je.run(KalmanFilter(), model, y, None, prior)
+    kf_error = np.linalg.norm(np.asarray(kf.cov[0]) - exact) / np.linalg.norm(exact)
+    assert not kf_error < 1e-2  # NaN or O(1) error
+    assert kf.status[0] != je.Status.OK  # and the status says so
+
+
+def test_status_flags_nonfinite_inside_jit():
+    model, prior, sim = linear_problem(seed=10, n=2, m=1, T=10)
+    bad = je.LinearGaussian(
+        model.F, model.H, model.Q, -model.R
+    )  # indefinite, hidden from checks by jit
+    res = jax.jit(lambda m: je.run(KalmanFilter(), m, sim.y, None, prior))(bad)
+    assert np.all(np.asarray(res.status) != je.Status.OK)
+    assert "NONFINITE" in je.Status.describe(int(res.status[0]))
