@@ -23,7 +23,7 @@ theta_hat = theta stay so exactly); as dt -> 0 the scheme tends to eq 17 driven 
 filter"; NOTES.md section 5) for x_{k+1} = F x_k + B u_k + Phi_k theta, y_k = H x_k.
 
 M, Sigma, Q and R are array fields of the observer: gradients flow to them (``eqx.filter_grad``
-over the observer), see :mod:`jaxest.observers.tuning`.
+over the observer); :func:`jaxest.tune.fit` tunes them (see :mod:`jaxest.studies.adaptive`).
 """
 
 from __future__ import annotations
