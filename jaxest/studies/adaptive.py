@@ -51,9 +51,9 @@ SETTLING_BAND = 0.02
 #: standard deviation, initial-state spread
 CONFIG = {
     "charlie": dict(
-        T=250.0,
+        T=320.0,
         mc_T=150.0,
-        tune_T=20.0,
+        tune_T=40.0,
         amplitude=(3.0,),
         freqs=(0.5, 1.3, 2.9),
         noise=0.01,
