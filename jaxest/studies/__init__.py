@@ -16,6 +16,7 @@ STUDIES: dict[str, str] = {
     "svd-ekf": "jaxest.studies.svd_ekf",
     "wiener": "jaxest.studies.wiener",
     "network": "jaxest.studies.network",
+    "adaptive": "jaxest.studies.adaptive",
 }
 
 

@@ -1,0 +1,95 @@
+"""Speed of Zhang's adaptive observer: simulated seconds per wall-clock second, one run and under
+``vmap`` over many scenarios (recorded closed-loop data, the observer alone, float64).
+
+    PYTHONPATH=. python benchmarks/adaptive.py [--batch 1000] [--seconds 20] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+
+def _timed(fn, *args, repeats: int = 3) -> float:
+    jax.block_until_ready(fn(*args))  # compile
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--batch", type=int, default=1000, help="scenarios under vmap (default 1000)"
+    )
+    parser.add_argument("--seconds", type=float, default=20.0, help="simulated time per run")
+    parser.add_argument("--json", default=None, help="also write the JSON here")
+    args = parser.parse_args()
+    jax.config.update("jax_enable_x64", True)
+
+    from jaxest.observers.adaptive import DiscreteAdaptiveObserver, ObserverPrior
+    from jaxest.run import run
+    from jaxest.studies.adaptive import (
+        DT,
+        fly,
+        hand_observer,
+        make_plant,
+        prior_for,
+        random_scenarios,
+    )
+
+    results = {"device": jax.devices()[0].device_kind, "machine": platform.machine(), "dt": DT}
+    for name in ("charlie", "b747"):
+        plant = make_plant(name)
+        observer = hand_observer(plant)
+        prior = prior_for(observer, plant)
+        scenarios = random_scenarios(name, plant, jax.random.PRNGKey(0), args.batch)
+        data = eqx.filter_jit(jax.vmap(lambda s: fly(observer, plant, name, s, args.seconds)))(
+            scenarios
+        )
+        ys, us = data.observations, data.inputs
+        steps = ys.shape[1]
+
+        continuous = eqx.filter_jit(lambda y, u: run(observer, plant.model, y, u, prior).theta)
+        batched = eqx.filter_jit(
+            jax.vmap(lambda y, u: run(observer, plant.model, y, u, prior).theta)
+        )
+        dmodel = plant.model.discretize(DT)
+        n, m, p = plant.model.A.shape[0], plant.model.C.shape[0], plant.theta.shape[0]
+        dobs = DiscreteAdaptiveObserver(Q=1e-4 * jnp.eye(n), R=1e-2 * jnp.eye(m), forgetting=0.99)
+        dprior = ObserverPrior(jnp.zeros(n), jnp.ones(p), jnp.eye(n), jnp.eye(p))
+        discrete = eqx.filter_jit(lambda y, u: run(dobs, dmodel, y, u, dprior).theta)
+        dbatched = eqx.filter_jit(jax.vmap(lambda y, u: run(dobs, dmodel, y, u, dprior).theta))
+
+        single = _timed(continuous, ys[0], us[0])
+        many = _timed(batched, ys, us, repeats=1)
+        dsingle = _timed(discrete, ys[0], us[0])
+        dmany = _timed(dbatched, ys, us, repeats=1)
+        simulated = steps * DT
+        results[name] = {
+            "steps": steps,
+            "substeps": observer.substeps,
+            "continuous_single_sim_s_per_wall_s": simulated / single,
+            "continuous_vmap_sim_s_per_wall_s": args.batch * simulated / many,
+            "continuous_vmap_batch": args.batch,
+            "discrete_single_sim_s_per_wall_s": simulated / dsingle,
+            "discrete_vmap_sim_s_per_wall_s": args.batch * simulated / dmany,
+        }
+    text = json.dumps(results, indent=2)
+    print(text)
+    if args.json:
+        with open(args.json, "w") as fh:
+            fh.write(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,418 @@
+"""Zhang's adaptive observer: convergence, integration accuracy against scipy, the discrete form
+against a plain NumPy recursion, persistent-excitation monitoring and jit/vmap/grad."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.integrate
+import scipy.linalg
+from jax import enable_x64
+
+from jaxest.observers import (
+    AdaptiveObserver,
+    ContinuousLTV,
+    DiscreteAdaptiveObserver,
+    InputEffectiveness,
+    ObserverPrior,
+    simulate_closed_loop,
+)
+from jaxest.run import Status, run
+from jaxest.systems.aircraft_linear import aircraft, b747
+
+DT = 0.01
+
+
+def charlie_setup(dtype=jnp.float64, M=30.0, window=200, threshold=1e-6):
+    ac = aircraft("charlie")
+    A, B, C = (jnp.asarray(ac[k], dtype) for k in ("A", "B", "C"))
+    n, m = 4, 3
+    model = ContinuousLTV(A, jnp.zeros_like(B), C, InputEffectiveness(B))
+    # independent gains from scipy: LQR state feedback and the steady-state filter Riccati P
+    Pc = scipy.linalg.solve_continuous_are(ac["A"], ac["B"], np.eye(n), np.eye(1))
+    Kbar = jnp.asarray(ac["B"].T @ Pc, dtype)
+    Pf = jnp.asarray(
+        scipy.linalg.solve_continuous_are(ac["A"].T, ac["C"].T, np.eye(n), np.eye(m)), dtype
+    )
+    obs = AdaptiveObserver(
+        M=M * jnp.eye(1, dtype=dtype),
+        Sigma=jnp.eye(m, dtype=dtype),
+        Q=jnp.eye(n, dtype=dtype),
+        R=jnp.eye(m, dtype=dtype),
+        dt=DT,
+        excitation_window=window,
+        excitation_threshold=threshold,
+    )
+    prior = ObserverPrior(jnp.zeros(n, dtype), jnp.ones(1, dtype), Pf)
+    return model, obs, prior, Kbar, jnp.asarray(ac["theta"], dtype)
+
+
+def multisine(T, amplitude=1.0, dtype=jnp.float64):
+    t = np.arange(T) * DT
+    return jnp.asarray(
+        amplitude * (np.sin(0.5 * t) + np.sin(1.3 * t + 1) + np.sin(2.9 * t + 2))[:, None], dtype
+    )
+
+
+X0 = (0.1, 0.05, 0.0, 0.0)
+
+
+def test_noise_free_convergence_charlie():
+    with enable_x64():
+        model, obs, prior, Kbar, theta = charlie_setup()
+        sim = eqx.filter_jit(simulate_closed_loop)(
+            obs, model, theta, jnp.asarray(X0), prior, Kbar, multisine(8000)
+        )
+        est = sim.estimate
+        theta_err = jnp.abs(est.theta[-1] - theta) / jnp.abs(theta)
+        x_err = jnp.linalg.norm(est.x[-1] - sim.states[-1])
+        assert float(theta_err[0]) < 1e-6
+        assert float(x_err) < 1e-6
+        assert float(jnp.abs(est.theta[0, 0] - theta[0])) > 0.5  # it started far away
+        assert bool(jnp.all(est.status == Status.OK))
+
+
+def test_closed_loop_equals_open_loop_run():
+    with enable_x64():
+        model, obs, prior, Kbar, theta = charlie_setup()
+        key = jax.random.PRNGKey(1)
+        sim = simulate_closed_loop(
+            obs, model, theta, jnp.asarray(X0), prior, Kbar, multisine(300), key, 0.01
+        )
+        again = run(obs, model, sim.observations, sim.inputs, prior)
+        np.testing.assert_allclose(again.theta, sim.estimate.theta, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(again.x, sim.estimate.x, rtol=1e-12, atol=1e-14)
+
+
+def _ltv_model():
+    A0 = np.array([[0.0, 1.0], [-2.0, -0.5]])
+
+    def A(t):
+        return jnp.asarray(A0) + 0.3 * jnp.sin(t) * jnp.array([[0.0, 0.0], [1.0, 0.0]])
+
+    C = lambda t: jnp.array([[1.0, 0.2 * jnp.cos(t)]])
+    B = jnp.array([[0.0], [1.0]])
+    psi = lambda t, u, y: jnp.array([[0.0, 0.0], [u[0], y[0] * jnp.cos(t)]])
+    return ContinuousLTV(A, B, C, psi), A0
+
+
+def test_step_integrates_the_sampled_observer_like_scipy():
+    """One step of RK4 substeps matches solve_ivp on the same ODE written out in NumPy."""
+    with enable_x64():
+        model, A0 = _ltv_model()
+        M, Sigma, Q, R = np.diag([2.0, 0.5]), np.array([[1.5]]), np.eye(2), np.array([[0.3]])
+        obs = AdaptiveObserver(
+            M=jnp.asarray(M),
+            Sigma=jnp.asarray(Sigma),
+            Q=jnp.asarray(Q),
+            R=jnp.asarray(R),
+            dt=0.05,
+            substeps=8,
+        )
+        prior = ObserverPrior(
+            jnp.array([0.3, -0.1]), jnp.array([0.5, -0.2]), jnp.array([[1.0, 0.1], [0.1, 0.5]])
+        )
+        state = obs.init(model, prior)
+        # take a few steps so that Gamma is non-zero, then compare one step
+        for k in range(3):
+            state, _ = obs.step(model, state, jnp.array([0.2 * k + 0.1]), jnp.array([1.0 - k]))
+        y, u = np.array([0.7]), np.array([0.4])
+        t0 = float(state.t)
+        new, _ = obs.step(model, state, jnp.asarray(y), jnp.asarray(u))
+
+        def A(t):
+            return A0 + 0.3 * np.sin(t) * np.array([[0.0, 0.0], [1.0, 0.0]])
+
+        def C(t):
+            return np.array([[1.0, 0.2 * np.cos(t)]])
+
+        e = y - C(t0) @ np.asarray(state.x)
+
+        def f(t, z):
+            x, th, G, P = z[:2], z[2:4], z[4:8].reshape(2, 2), z[8:].reshape(2, 2)
+            Ct = C(t)
+            psi = np.array([[0.0, 0.0], [u[0], y[0] * np.cos(t)]])
+            K = P @ Ct.T @ np.linalg.inv(R)
+            g = M @ G.T @ Ct.T @ Sigma @ e
+            dx = A(t) @ x + np.array([0.0, u[0]]) + psi @ th + K @ e + G @ g
+            dG = (A(t) - K @ Ct) @ G + psi
+            dP = A(t) @ P + P @ A(t).T - P @ Ct.T @ np.linalg.inv(R) @ Ct @ P + Q
+            return np.concatenate([dx, g, dG.ravel(), dP.ravel()])
+
+        z0 = np.concatenate(
+            [
+                np.asarray(state.x),
+                np.asarray(state.theta),
+                np.asarray(state.Gamma).ravel(),
+                np.asarray(state.P).ravel(),
+            ]
+        )
+        ref = scipy.integrate.solve_ivp(f, (t0, t0 + 0.05), z0, rtol=1e-12, atol=1e-14).y[:, -1]
+        np.testing.assert_allclose(new.x, ref[:2], rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(new.theta, ref[2:4], rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(new.Gamma, ref[4:8].reshape(2, 2), rtol=1e-9, atol=1e-11)
+        np.testing.assert_allclose(new.P, ref[8:].reshape(2, 2), rtol=1e-9, atol=1e-11)
+
+
+def test_sampled_observer_tends_to_continuous_eq17():
+    """With a small dt the sampled observer follows eq 17 driven by continuous y (scipy)."""
+    with enable_x64():
+        A = np.array([[0.0, 1.0], [-2.0, -0.7]])
+        Bp = np.array([[0.0], [1.0]])
+        C = np.array([[1.0, 0.0]])
+        K = np.array([[1.0], [1.0]])
+        M, theta = 5.0, 1.7
+        u = lambda t: np.sin(t) + np.sin(2.3 * t)
+
+        def f(t, z):  # truth x, observer x_hat, theta_hat, Gamma
+            x, xh, th, G = z[:2], z[2:4], z[4], z[5:7]
+            e = C @ x - C @ xh
+            psi = Bp[:, 0] * u(t)
+            adapt = M * (C @ G) * e
+            dxh = A @ xh + psi * th + K[:, 0] * e + G * adapt
+            return np.concatenate([A @ x + psi * theta, dxh, adapt, (A - K @ C) @ G + psi])
+
+        T = 20.0
+        ts = np.arange(0, 2001) * 0.01
+        ref = scipy.integrate.solve_ivp(
+            f, (0, T), np.array([0.5, 0, 0, 0, 0, 0, 0.0]), t_eval=ts, rtol=1e-10, atol=1e-12
+        )
+        errors = []
+        for dt in (0.01, 0.001):
+            steps = int(round(T / dt)) + 1
+            t = np.arange(steps) * dt
+            model = ContinuousLTV(
+                jnp.asarray(A),
+                jnp.zeros((2, 1)),
+                jnp.asarray(C),
+                InputEffectiveness(jnp.asarray(Bp)),
+            )
+            us = jnp.asarray(u(t)[:, None])
+            xs = scipy.integrate.solve_ivp(
+                lambda s, x: A @ x + Bp[:, 0] * u(s) * theta,
+                (0, T),
+                [0.5, 0],
+                t_eval=t,
+                rtol=1e-10,
+                atol=1e-12,
+            ).y.T
+            obs = AdaptiveObserver(
+                M=jnp.array([[M]]), Sigma=jnp.eye(1), K=jnp.asarray(K), dt=dt, substeps=2
+            )
+            # u varies within a sample here (continuous truth above); the observer holds u_k
+            res = run(
+                obs, model, jnp.asarray(xs @ C.T), us, ObserverPrior(jnp.zeros(2), jnp.zeros(1))
+            )
+            stride = int(round(0.01 / dt))
+            errors.append(np.max(np.abs(np.asarray(res.theta[::stride, 0]) - ref.y[4])))
+        coarse, fine = errors
+        assert fine < 0.02
+        assert fine < coarse / 5  # first order in dt
+
+
+def test_excitation_lost_without_reference():
+    with enable_x64():
+        # the closed loop's phugoid (-0.06 +- 0.17j) lets the transient's excitation die slowly
+        model, obs, prior, Kbar, theta = charlie_setup(window=300, threshold=1e-4)
+        T = 3000
+        quiet = simulate_closed_loop(
+            obs, model, theta, jnp.asarray(X0), prior, Kbar, jnp.zeros((T, 1))
+        )
+        excited = simulate_closed_loop(
+            obs, model, theta, jnp.asarray(X0), prior, Kbar, multisine(T)
+        )
+        lost = (quiet.estimate.status & Status.NOT_EXCITED) != 0
+        assert not bool(jnp.any(lost[:300]))  # window not yet full
+        assert bool(jnp.all(lost[-300:]))  # the transient died out: excitation lost
+        assert not bool(jnp.any((excited.estimate.status & Status.NOT_EXCITED) != 0))
+        # eq 16 window Gramian against a trapezoid rule on the sampled Gamma (NumPy)
+        C, G = np.asarray(model.C), np.asarray(excited.estimate.Gamma)
+        integrand = np.einsum("tnp,mn,mq,tqr->tpr", G, C, C, G)
+        k = T - 1
+        trap = DT * (integrand[k - 300 : k + 1].sum(0) - 0.5 * (integrand[k - 300] + integrand[k]))
+        np.testing.assert_allclose(
+            float(excited.estimate.excitation[k]), np.linalg.eigvalsh(trap)[0], rtol=1e-3
+        )
+
+
+def numpy_discrete_observer(F, B, H, Phi, Q, R, lam, x, P, theta, Sp, ys, us):
+    """NOTES.md section 5 in its own ordering: predict with (u_{k-1}, Phi_{k-1}), then update."""
+    n, p = F.shape[0], theta.shape[0]
+    Ups = np.zeros((n, p))
+    xs, thetas = [], []
+    for k, y in enumerate(ys):
+        if k == 0:  # the prior is on x_0: no prediction before the first measurement
+            x_pred, P_pred, Ups_pred = x, P, Ups
+        else:
+            u, Ph = us[k - 1], Phi[k - 1]
+            x_pred = F @ x + B @ u + Ph @ theta
+            P_pred = F @ P @ F.T + Q
+            Ups_pred = F @ Ups + Ph
+        S = H @ P_pred @ H.T + R
+        K = P_pred @ H.T @ np.linalg.inv(S)
+        P = (np.eye(n) - K @ H) @ P_pred
+        Ups = (np.eye(n) - K @ H) @ Ups_pred
+        Om = H @ Ups_pred
+        Lam = np.linalg.inv(lam * S + Om @ Sp @ Om.T)
+        Gam = Sp @ Om.T @ Lam
+        Sp = (Sp - Sp @ Om.T @ Lam @ Om @ Sp) / lam
+        e = y - H @ x_pred
+        theta_new = theta + Gam @ e
+        x = x_pred + K @ e + Ups @ (theta_new - theta)
+        theta = theta_new
+        xs.append(x)
+        thetas.append(theta)
+    return np.array(xs), np.array(thetas)
+
+
+def test_discrete_form_matches_numpy_and_converges():
+    with enable_x64():
+        model, obs, prior, Kbar, theta = charlie_setup()
+        sim = simulate_closed_loop(obs, model, theta, jnp.asarray(X0), prior, Kbar, multisine(3000))
+        dmodel = model.discretize(DT)
+        dobs = DiscreteAdaptiveObserver(Q=1e-4 * jnp.eye(4), R=1e-2 * jnp.eye(3), forgetting=0.99)
+        dprior = ObserverPrior(jnp.zeros(4), jnp.ones(1), jnp.eye(4), 10.0 * jnp.eye(1))
+        res = run(dobs, dmodel, sim.observations, sim.inputs, dprior)
+        Phi = np.stack([np.asarray(dmodel.phi(k, u, None)) for k, u in enumerate(sim.inputs[:400])])
+        xs, thetas = numpy_discrete_observer(
+            np.asarray(dmodel.F),
+            np.asarray(dmodel.B),
+            np.asarray(dmodel.H),
+            Phi,
+            1e-4 * np.eye(4),
+            1e-2 * np.eye(3),
+            0.99,
+            np.zeros(4),
+            np.eye(4),
+            np.ones(1),
+            10.0 * np.eye(1),
+            np.asarray(sim.observations[:400]),
+            np.asarray(sim.inputs[:400]),
+        )
+        np.testing.assert_allclose(res.theta[:400], thetas, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(res.x[:400], xs, rtol=1e-9, atol=1e-12)
+        # the sampled truth is exactly the discretised model: noise-free, the estimates converge
+        assert abs(float(res.theta[-1, 0]) - 2.0) < 1e-10
+        assert float(jnp.linalg.norm(res.x[-1] - sim.states[-1])) < 1e-10
+
+
+def _loss(obs, model, prior, Kbar, theta, r):
+    sim = simulate_closed_loop(obs, model, theta, jnp.asarray(X0, r.dtype), prior, Kbar, r)
+    return jnp.mean((sim.estimate.theta - theta) ** 2)
+
+
+def _discrete_loss(obs, model, prior, ys, us):
+    return jnp.mean((run(obs, model, ys, us, prior).theta - 2.0) ** 2)
+
+
+@pytest.mark.parametrize("x64", [False, True])
+def test_jit_vmap_grad(x64):
+    """One unbatched jit compile and one jit(vmap(value_and_grad)) compile per observer."""
+    with enable_x64(x64):
+        dtype = jnp.float64 if x64 else jnp.float32
+        model, obs, prior, Kbar, theta = charlie_setup(dtype, M=5.0)
+        r = multisine(100, dtype=dtype)
+        amps = jnp.asarray([0.5, 1.0, 2.0], dtype)
+        loss = eqx.filter_jit(_loss)
+        batched = eqx.filter_jit(
+            jax.vmap(
+                lambda o, a: eqx.filter_value_and_grad(_loss)(o, model, prior, Kbar, theta, a * r),
+                in_axes=(None, 0),
+            )
+        )
+        values, grads = batched(obs, amps)
+        looped = jnp.stack([loss(obs, model, prior, Kbar, theta, a * r) for a in amps])
+        assert values.dtype == dtype and bool(jnp.all(jnp.isfinite(values)))
+        np.testing.assert_allclose(values, looped, rtol=1e-4 if not x64 else 1e-12)
+        for g in (grads.M, grads.Sigma, grads.Q, grads.R):
+            assert bool(jnp.all(jnp.isfinite(g))) and bool(jnp.any(g != 0))
+        if x64:  # central finite differences in M, Sigma[0, 0] and Q[3, 3] (second amplitude)
+            h = 1e-4
+            for get, direction in (
+                (lambda o: o.M, jnp.ones((1, 1))),
+                (lambda o: o.Sigma, jnp.zeros((3, 3)).at[0, 0].set(1.0)),
+                (lambda o: o.Q, jnp.zeros((4, 4)).at[3, 3].set(1.0)),
+            ):
+                plus = eqx.tree_at(get, obs, get(obs) + h * direction)
+                minus = eqx.tree_at(get, obs, get(obs) - h * direction)
+                fd = (
+                    loss(plus, model, prior, Kbar, theta, r)
+                    - loss(minus, model, prior, Kbar, theta, r)
+                ) / (2 * h)
+                np.testing.assert_allclose(jnp.sum(get(grads)[1] * direction), fd, rtol=1e-5)
+        # the discrete form on recorded data: vmap over measurement noise, grad to Q and R
+        dmodel = model.discretize(DT)
+        sim = simulate_closed_loop(obs, model, theta, jnp.asarray(X0, dtype), prior, Kbar, r)
+        dobs = DiscreteAdaptiveObserver(
+            Q=1e-4 * jnp.eye(4, dtype=dtype), R=1e-2 * jnp.eye(3, dtype=dtype)
+        )
+        dprior = ObserverPrior(
+            jnp.zeros(4, dtype),
+            jnp.ones(1, dtype),
+            jnp.eye(4, dtype=dtype),
+            jnp.eye(1, dtype=dtype),
+        )
+        noise = 1e-3 * jax.random.normal(jax.random.PRNGKey(0), (3, *sim.observations.shape), dtype)
+        dloss = eqx.filter_jit(_discrete_loss)
+        dvalues, dgrads = eqx.filter_jit(
+            jax.vmap(
+                lambda v: eqx.filter_value_and_grad(_discrete_loss)(
+                    dobs, dmodel, dprior, sim.observations + v, sim.inputs
+                )
+            )
+        )(noise)
+        dlooped = jnp.stack(
+            [dloss(dobs, dmodel, dprior, sim.observations + v, sim.inputs) for v in noise]
+        )
+        np.testing.assert_allclose(dvalues, dlooped, rtol=1e-4 if not x64 else 1e-12)
+        assert bool(jnp.all(jnp.isfinite(dgrads.Q))) and bool(jnp.all(jnp.isfinite(dgrads.R)))
+        if x64:
+            h = 1e-7
+            plus = eqx.tree_at(lambda o: o.R, dobs, dobs.R * (1 + h))
+            minus = eqx.tree_at(lambda o: o.R, dobs, dobs.R * (1 - h))
+            fd = (
+                dloss(plus, dmodel, dprior, sim.observations + noise[0], sim.inputs)
+                - dloss(minus, dmodel, dprior, sim.observations + noise[0], sim.inputs)
+            ) / (2 * h)
+            np.testing.assert_allclose(jnp.sum(dgrads.R[0] * dobs.R), fd, rtol=1e-5)
+
+
+def test_bad_arguments_raise():
+    model, obs, prior, _, _ = charlie_setup(jnp.float32)
+    with pytest.raises(ValueError, match="M"):
+        AdaptiveObserver(M=-jnp.eye(1), Sigma=jnp.eye(3), Q=jnp.eye(4), R=jnp.eye(3))
+    with pytest.raises(ValueError, match="K"):
+        AdaptiveObserver(M=jnp.eye(1), Sigma=jnp.eye(3))
+    with pytest.raises(ValueError, match="Sigma"):
+        AdaptiveObserver(M=jnp.eye(1), Sigma=jnp.eye(2), Q=jnp.eye(4), R=jnp.eye(3)).init(
+            model, prior
+        )
+    with pytest.raises(ValueError, match="prior.theta"):
+        obs.init(model, ObserverPrior(prior.x, jnp.ones(2), prior.P))
+
+
+def test_aircraft_models():
+    A_pub, B_pub = b747()
+    A_pr, B_pr = b747(printed=True)
+    assert np.max(np.linalg.eigvals(A_pub).real) < 0  # published: stable (slow spiral -0.007)
+    assert np.max(np.linalg.eigvals(A_pr).real) > 0.04  # the scan's A[2, 0] = 0.305: divergent
+    assert B_pr[2, 1] == 1.063 and B_pub[2, 1] == 0.143
+    for name in ("charlie", "b747"):
+        ac = aircraft(name)
+        obsv = np.vstack([ac["C"] @ np.linalg.matrix_power(ac["A"], k) for k in range(4)])
+        assert np.linalg.matrix_rank(obsv) == 4
+    with pytest.raises(ValueError, match="name"):
+        aircraft("concorde")
+
+
+def test_smallest_eigenvalue_closed_forms():
+    from jaxest.observers.excitation import smallest_eigenvalue
+
+    rng = np.random.default_rng(0)
+    for p in (1, 2, 3):
+        X = rng.normal(size=(p, p))
+        W = X @ X.T
+        np.testing.assert_allclose(
+            smallest_eigenvalue(jnp.asarray(W)), np.linalg.eigvalsh(W)[0], rtol=1e-5, atol=1e-6
+        )
