@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest.linalg import cho_solve_lower, symmetrize
+from jaxest.linalg import mm, sandwich, symmetrize
 from jaxest.run import FilterResult, Gaussian, Status, check_finite_status
 
 LOG_2PI = float(jnp.log(2.0 * jnp.pi))
@@ -71,11 +71,11 @@ def masked_measurement(y, y_pred, H, R) -> Measurement:
     return Measurement(e, mask[:, None] * H, R_masked, jnp.sum(mask))
 
 
-def gaussian_loglik(e, S_chol, num_observed):
-    """log N(e; 0, S) over the observed entries, S = S_chol S_chol^T (lower)."""
-    z = jax.scipy.linalg.solve_triangular(S_chol, e, lower=True)
+def gaussian_loglik(whitened, S_chol, num_observed):
+    """log N(e; 0, S) over the observed entries, from S = S_chol S_chol^T (lower) and the
+    whitened innovation S_chol^-1 e."""
     logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diag(S_chol))))
-    return -0.5 * (num_observed * LOG_2PI + logdet + z @ z)
+    return -0.5 * (num_observed * LOG_2PI + logdet + whitened @ whitened)
 
 
 def definiteness_status(P) -> Int[Array, ""]:
@@ -88,21 +88,27 @@ def definiteness_status(P) -> Int[Array, ""]:
 def joseph_update(x, P, meas: Measurement):
     """Covariance-form measurement update with the Joseph form of P+ (Bucy & Joseph).
 
-    Returns x+, P+, the innovation covariance S = H P H^T + R and its Cholesky factor.
+    Returns x+, P+, the innovation covariance S = H P H^T + R, its Cholesky factor and the
+    whitened innovation S_chol^-1 e (one triangular solve serves the gain and the likelihood).
     """
     H, R, e = meas.H, meas.R, meas.innovation
-    S = symmetrize(H @ P @ H.T + R)
+    n = x.shape[0]
+    HP = mm(H, P)
+    S = symmetrize(mm(HP, H.T) + R)
     S_chol = jnp.linalg.cholesky(S)
-    K = cho_solve_lower(S_chol, H @ P).T
-    IKH = jnp.eye(x.shape[0], dtype=P.dtype) - K @ H
-    P_post = symmetrize(IKH @ P @ IKH.T + K @ R @ K.T)
-    return x + K @ e, P_post, S, S_chol
+    Z = jax.scipy.linalg.solve_triangular(
+        S_chol, jnp.concatenate([HP, e[:, None]], axis=1), lower=True
+    )
+    K = jax.scipy.linalg.solve_triangular(S_chol.T, Z[:, :n], lower=False).T
+    IKH = jnp.eye(n, dtype=P.dtype) - mm(K, H)
+    P_post = symmetrize(sandwich(IKH, P) + sandwich(K, R))
+    return x + K @ e, P_post, S, S_chol, Z[:, n]
 
 
 def covariance_predict(model, x, P, u, k):
     """Eqs 6-7: x(k+1|k) = f(x(k|k), u_k), P(k+1|k) = F P F^T + G Q G^T."""
     x_next, F, G, Q = model.transition(x, u, k)
-    return x_next, symmetrize(F @ P @ F.T + G @ Q @ G.T)
+    return x_next, symmetrize(sandwich(F, P) + sandwich(G, Q))
 
 
 def covariance_step(model, x, P, y, u, k):
@@ -113,8 +119,8 @@ def covariance_step(model, x, P, y, u, k):
     """
     y_pred, H, R = model.observation(x, u, k)
     meas = masked_measurement(y, y_pred, H, R)
-    x_post, P_post, S, S_chol = joseph_update(x, P, meas)
-    loglik = gaussian_loglik(meas.innovation, S_chol, meas.num_observed)
+    x_post, P_post, S, S_chol, whitened = joseph_update(x, P, meas)
+    loglik = gaussian_loglik(whitened, S_chol, meas.num_observed)
     x_next, P_next = covariance_predict(model, x_post, P_post, u, k)
     return x_next, P_next, (x_post, P_post, meas.innovation, S, loglik)
 

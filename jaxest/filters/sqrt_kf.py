@@ -57,7 +57,7 @@ class SquareRootKF(eqx.Module):
         Se, Kbar, S_post = post[:m, :m], post[m:, :m], post[m:, m:]
         whitened = jax.scipy.linalg.solve_triangular(Se, meas.innovation, lower=True)
         x_post = x + Kbar @ whitened
-        loglik = gaussian_loglik(meas.innovation, Se, meas.num_observed)
+        loglik = gaussian_loglik(whitened, Se, meas.num_observed)
         x_next, F, G, Q = model.transition(x_post, u, k)
         S_next = lower_factor(jnp.concatenate([S_post.T @ F.T, jnp.linalg.cholesky(Q).T @ G.T]))
         P_post = S_post @ S_post.T

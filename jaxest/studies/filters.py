@@ -167,16 +167,14 @@ def _tuning_figure(result, path: Path):
     axes[0, 0].legend()
     labels = ["Q11", "Q22", "Q33", "Q44", "R11", "R22"]
     x = np.arange(6)
-    for shift, name in ((-0.15, "ml"), (0.15, "supervised")):
-        est = np.concatenate([result[name]["Q_diag"], result[name]["R_diag"]])
-        true = np.concatenate([result["true"]["Q_diag"], result["true"]["R_diag"]])
-        se = np.asarray(result[name]["standard_errors"])
-        axes[0, 1].errorbar(
-            x + shift, est / true, yerr=3 * se * est / true, fmt="o", label=f"{name} (±3 s.e.)"
-        )
-    start = np.concatenate([result["start"]["Q_diag"], result["start"]["R_diag"]]) / np.concatenate(
-        [result["true"]["Q_diag"], result["true"]["R_diag"]]
-    )
+    true = np.concatenate([result["true"]["Q_diag"], result["true"]["R_diag"]])
+    ml = np.concatenate([result["ml"]["Q_diag"], result["ml"]["R_diag"]]) / true
+    se = np.asarray(result["ml"]["standard_errors"])
+    band = [ml - ml * np.exp(-3 * se), ml * np.exp(3 * se) - ml]
+    axes[0, 1].errorbar(x - 0.15, ml, yerr=band, fmt="o", label="ml (±3 s.e.)")
+    sup = np.concatenate([result["supervised"]["Q_diag"], result["supervised"]["R_diag"]]) / true
+    axes[0, 1].plot(x + 0.15, sup, "s", label="supervised (scale not identifiable)")
+    start = np.concatenate([result["start"]["Q_diag"], result["start"]["R_diag"]]) / true
     axes[0, 1].plot(x, start, "kx", label="start")
     axes[0, 1].axhline(1.0, color="gray", lw=0.8)
     axes[0, 1].set_yscale("log")
