@@ -37,6 +37,11 @@ def test_filters_study_quick(tmp_path):
     at = {(r["filter"], r["dtype"], r["delta"]): r["rel_error"] for r in summary["robustness"]}
     assert at[("svd_ekf", "float64", 1e-9)] < 1e-5 and at[("svd_improved", "float64", 1e-9)] < 1e-5
     assert at[("kf", "float64", 1e-9)] is None or at[("kf", "float64", 1e-9)] > 1e-2
+    # the tuning demonstration: Q, R from a 10x wrong start, within 3 standard errors of the truth
+    tuning = summary["tuning"]
+    assert max(abs(z) for z in tuning["ml"]["z_scores"]) < 3.0
+    assert tuning["rmse"]["ml"] < tuning["rmse"]["start"]
+    assert tuning["rmse"]["supervised"] < tuning["rmse"]["start"]
     for name in ("robustness.png", "tuning.png", "tables.md"):
         assert (tmp_path / "filters" / name).stat().st_size > 0
     assert json.loads((tmp_path / "index.json").read_text())["filters"]["dir"].endswith("filters")

@@ -218,7 +218,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
                     name,
                     *np.round(r["Q_diag"], 5),
                     *np.round(r["R_diag"], 4),
-                    f"{np.max(np.abs(r['z_scores'])):.2f}",
+                    f"{np.max(np.abs(r['z_scores'])):.2f}" if "z_scores" in r else "n/a",
                     f"{tuned['rmse'][name]:.4f}",
                 ]
             )
