@@ -13,6 +13,7 @@ import importlib
 #: study name -> module (imported only when the study runs)
 STUDIES: dict[str, str] = {
     "filters": "jaxest.studies.filters",
+    "smf-fdi": "jaxest.studies.smf_fdi",
 }
 
 
