@@ -43,7 +43,8 @@ def numpy_add_segment(P, s):
     if a <= 0:
         return P
     p = (-(n - 1) * a + math.sqrt((n - 1) ** 2 * a**2 + 4 * n * a)) / (2 * n)
-    return (1 + p) * P + (1 + 1 / p) * np.outer(s, s)
+    P = (1 + p) * P + (1 + 1 / p) * np.outer(s, s)
+    return 0.5 * (P + P.T)  # as jaxest: rounding asymmetry would otherwise grow
 
 
 def numpy_intersect_strip(c, P, h, z, v):
@@ -65,7 +66,8 @@ def numpy_intersect_strip(c, P, h, z, v):
     q = max(np.roots([A, B, Cq]).real)
     s = d**2 + q * g
     Ph = P @ h
-    return c + q * e * Ph / s, (1 + q - q * e**2 / s) * (P - (q / s) * np.outer(Ph, Ph)), False
+    P = (1 + q - q * e**2 / s) * (P - (q / s) * np.outer(Ph, Ph))
+    return c + q * e * Ph / s, 0.5 * (P + P.T), False
 
 
 def numpy_smf(ys, c, P, w_bar, v_bar, mask=(True, True)):
