@@ -55,7 +55,7 @@ def test_box_sum_contains_sampled_points_and_zero_width_is_identity():
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
 def test_strip_intersection_contains_sampled_points_and_is_least_volume(n):
     rng = np.random.default_rng(100 + n)
-    for trial in range(8):
+    for _ in range(8):
         c, P = _random_ellipsoid(rng, n)
         h = rng.normal(size=n)
         g = h @ P @ h
