@@ -36,7 +36,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxest.run import Status, run
-from jaxest.setmembership.ellipsoid import Ellipsoid, add_box, contains, intersect_strip
+from jaxest.setmembership.ellipsoid import (
+    Ellipsoid,
+    add_box,
+    contains,
+    intersect_strip,
+    is_positive_definite,
+)
 from jaxest.setmembership.interval import remainder_bound
 
 
@@ -177,7 +183,7 @@ class SetMembershipFilter(eqx.Module):
             jnp.all(jnp.isfinite(P_next))
             & jnp.all(jnp.isfinite(c_next))
             & jnp.all(diag <= self._limit(P.dtype))
-            & jnp.all(jnp.isfinite(jnp.linalg.cholesky(P_next)))
+            & is_positive_definite(P_next)
         )
         unbounded_next = state.unbounded | ~healthy
         frozen = lambda new, old: jnp.where(unbounded_next, old, new)

@@ -15,6 +15,7 @@ STUDIES: dict[str, str] = {
     "filters": "jaxest.studies.filters",
     "svd-ekf": "jaxest.studies.svd_ekf",
     "wiener": "jaxest.studies.wiener",
+    "smf-fdi": "jaxest.studies.smf_fdi",
     "network": "jaxest.studies.network",
     "adaptive": "jaxest.studies.adaptive",
 }

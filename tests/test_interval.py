@@ -1,0 +1,198 @@
+"""Interval arithmetic: outward rounding against exact rationals, every rule against dense sampling,
+Hessian enclosures and remainder bounds against sampled true values, the Duffing closed form."""
+
+from fractions import Fraction
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxest.setmembership import interval as iv
+from jaxest.setmembership.interval import Interval, bounding_box, hessian_interval, remainder_bound
+from jaxest.systems import duffing
+
+
+def _random_interval(rng, shape, scale=2.0, dtype=np.float64):
+    a, b = rng.uniform(-scale, scale, shape), rng.uniform(-scale, scale, shape)
+    return Interval(jnp.asarray(np.minimum(a, b), dtype), jnp.asarray(np.maximum(a, b), dtype))
+
+
+def _samples(x: Interval, rng, count=400):
+    lo, hi = np.asarray(x.lo, np.float64), np.asarray(x.hi, np.float64)
+    t = rng.uniform(size=(count, *lo.shape))
+    t[0], t[1] = 0.0, 1.0  # the endpoints themselves
+    return np.clip(lo + t * (hi - lo), lo, hi)  # the sum may round past hi
+
+
+def test_outward_rounding_contains_exact_rational_results():
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-1, 1, 200)
+    b = rng.uniform(0.1, 1, 200)
+    A, B = iv.point(jnp.asarray(a)), iv.point(jnp.asarray(b))
+    for op, exact in ((iv.add, lambda x, y: x + y), (iv.sub, lambda x, y: x - y),
+                      (iv.mul, lambda x, y: x * y), (iv.div, lambda x, y: x / y)):  # fmt: skip
+        out = op(A, B)
+        for i in range(200):
+            value = exact(Fraction(float(a[i])), Fraction(float(b[i])))
+            assert Fraction(float(out.lo[i])) <= value <= Fraction(float(out.hi[i]))
+            assert Fraction(float(out.lo[i])) < value or Fraction(float(out.hi[i])) > value
+    # a sum that is not exactly representable: the exact value lies strictly inside
+    s = iv.add(iv.point(jnp.asarray(0.1)), iv.point(jnp.asarray(0.2)))
+    assert Fraction(float(s.lo)) < Fraction(0.1) + Fraction(0.2) < Fraction(float(s.hi))
+
+
+UNARY = {
+    "sin": (iv.sin, np.sin, 8.0), "cos": (iv.cos, np.cos, 8.0), "exp": (None, np.exp, 2.0),
+    "tanh": (None, np.tanh, 3.0), "atan": (None, np.arctan, 3.0), "abs": (iv.abs_, np.abs, 2.0),
+    "square": (None, np.square, 2.0),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("name", list(UNARY))
+def test_unary_rules_contain_dense_samples(name):
+    rule, fn, scale = UNARY[name]
+    rule = rule or iv._rule(name)
+    rng = np.random.default_rng(1)
+    x = _random_interval(rng, (300,), scale)
+    out = rule(x)
+    values = fn(_samples(x, rng))
+    assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
+    # tight: for these monotone-by-piece functions the hull of dense samples nearly fills it
+    width = np.asarray(out.hi - out.lo)
+    assert np.all(values.max(0) - values.min(0) >= 0.95 * width - 1e-3)
+
+
+def test_positive_domain_rules_and_poles():
+    rng = np.random.default_rng(2)
+    lo, hi = np.sort(rng.uniform(0.01, 5, (2, 200)), axis=0)
+    x = Interval(jnp.asarray(lo), jnp.asarray(hi))
+    for out, fn in (
+        (iv.sqrt(x), np.sqrt),
+        (iv.log(x), np.log),
+        (iv.integer_pow(x, -2), lambda v: v**-2.0),
+    ):
+        values = fn(_samples(x, rng))
+        assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
+    t = iv.tan(Interval(jnp.asarray([1.0, -0.5]), jnp.asarray([2.0, 0.5])))  # the first holds pi/2
+    assert np.isinf(t.lo[0]) and np.isinf(t.hi[0]) and np.isfinite(t.hi[1])
+    d = iv.div(iv.point(jnp.ones(1)), Interval(jnp.asarray([-1.0]), jnp.asarray([1.0])))
+    assert np.isinf(d.lo[0]) and np.isinf(d.hi[0])
+
+
+def test_binary_rules_contain_dense_samples():
+    rng = np.random.default_rng(3)
+    a, b = _random_interval(rng, (300,)), _random_interval(rng, (300,))
+    sa, sb = _samples(a, rng), _samples(b, rng)
+    for out, values in (
+        (iv.mul(a, b), sa * sb), (iv.integer_pow(a, 3), sa**3), (iv.integer_pow(a, 4), sa**4),
+        (iv.atan2(a, b), np.arctan2(sa, sb)), (iv.max_(a, b), np.maximum(sa, sb)),
+        (iv.min_(a, b), np.minimum(sa, sb)),
+    ):  # fmt: skip
+        assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
+
+
+def test_dot_general_contains_sampled_products():
+    rng = np.random.default_rng(4)
+    A, x = _random_interval(rng, (3, 4)), _random_interval(rng, (4,))
+    out = iv.dot_general(A, x, dimension_numbers=(([1], [0]), ([], [])))
+    sA, sx = _samples(A, rng, 2000), _samples(x, rng, 2000)
+    values = np.einsum("sij,sj->si", sA, sx)
+    assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
+    # a point matrix times an interval vector: the enclosure is (nearly) exact
+    M = rng.normal(size=(3, 4))
+    exact = iv.dot_general(iv.point(jnp.asarray(M)), x, dimension_numbers=(([1], [0]), ([], [])))
+    lo = np.maximum(M, 0) @ np.asarray(x.lo) + np.minimum(M, 0) @ np.asarray(x.hi)
+    np.testing.assert_allclose(np.asarray(exact.lo), lo, rtol=1e-12, atol=1e-12)
+
+
+def _model_functions():
+    """Functions touching the primitives ordinary models use."""
+    return {
+        "trig": lambda x: jnp.stack([jnp.sin(x[0]) * jnp.cos(x[1]), jnp.tan(0.3 * x[0]) + x[1] ** 3]),
+        "exp_log": lambda x: jnp.array([jnp.exp(0.5 * x[0]) * jnp.log(2.5 + x[1]), jnp.sqrt(3.0 + x[0] * x[1])]),
+        "atan": lambda x: jnp.stack([jnp.arctan2(x[1], 2.0 + x[0]), jnp.arctan(x[0] * x[1])]),
+        "tanh_abs_minmax": lambda x: jnp.stack([jnp.tanh(x[0] - x[1]) + jnp.abs(x[0]), jnp.maximum(x[0], x[1]) ** 2 + jnp.minimum(x[0], 0.2)]),
+        "dot_index": lambda x: jnp.array([[1.0, -2.0], [0.5, 3.0]]) @ (x * x[jnp.array([1, 0])]) + x[-1] * jnp.sum(x**2),
+        "division": lambda x: jnp.stack([x[0] / (2.0 + x[1] ** 2), 1.0 / (3.0 + x[0])]),
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("name", list(_model_functions()))
+def test_hessian_interval_contains_sampled_hessians(name):
+    fn = _model_functions()[name]
+    rng = np.random.default_rng(5)
+    center = jnp.asarray(rng.uniform(-0.5, 0.5, 2))
+    box = Interval(center - 0.4, center + 0.4)
+    enclosure = jax.jit(lambda b: hessian_interval(fn, b))(box)
+    points = _samples(box, rng, 500)
+    hessians = np.asarray(jax.vmap(jax.hessian(fn))(jnp.asarray(points)))
+    assert np.all(hessians >= np.asarray(enclosure.lo)) and np.all(
+        hessians <= np.asarray(enclosure.hi)
+    )
+    assert np.all(np.isfinite(np.asarray(enclosure.lo)))
+
+
+@pytest.mark.parametrize("name", ["trig", "exp_log", "atan", "dot_index"])
+def test_remainder_bound_contains_sampled_remainders(name):
+    fn = _model_functions()[name]
+    rng = np.random.default_rng(6)
+    center = jnp.asarray(rng.uniform(-0.5, 0.5, 2))
+    A = rng.normal(size=(2, 2)) * 0.2
+    shape = jnp.asarray(A @ A.T + 0.01 * np.eye(2))
+    alpha = np.asarray(jax.jit(lambda c, P: remainder_bound(fn, c, P))(center, shape))
+    u = rng.normal(size=(5000, 2))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u *= np.sqrt(rng.uniform(size=(5000, 1)))
+    points = jnp.asarray(np.asarray(center) + u @ np.linalg.cholesky(np.asarray(shape)).T)
+    J = jax.jacfwd(fn)(center)
+    remainders = np.asarray(jax.vmap(lambda x: fn(x) - fn(center) - J @ (x - center))(points))
+    assert np.all(np.abs(remainders) <= alpha)
+    assert np.all(np.max(np.abs(remainders), axis=0) > 0.02 * alpha)  # bound is not vacuous
+
+
+def test_duffing_closed_form_agrees_with_automatic_bound():
+    rng = np.random.default_rng(7)
+    f = duffing.Duffing()
+    c = jnp.asarray(rng.uniform(-1, 1, (50, 2)))
+    A = rng.normal(size=(50, 2, 2)) * rng.uniform(0.01, 0.5, (50, 1, 1))
+    P = jnp.asarray(A @ np.swapaxes(A, 1, 2) + 1e-4 * np.eye(2))
+    auto = np.asarray(jax.jit(jax.vmap(lambda c, P: remainder_bound(f, c, P)))(c, P))
+    closed = np.asarray(jax.vmap(f.remainder_bound)(c, P))
+    assert np.all(auto[:, 0] == 0.0) and np.all(closed[:, 0] == 0.0)
+    np.testing.assert_allclose(auto[:, 1], closed[:, 1], rtol=1e-13)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_remainder_bound_under_jit_vmap_grad(dtype):
+    dt = jnp.dtype(dtype)
+    f = duffing.Duffing()
+    centers = jnp.asarray([[0.2, 0.3], [-0.4, 0.1], [0.0, 0.0]], dt)
+    P = 0.01 * jnp.eye(2, dtype=dt)
+    bound = jax.jit(lambda c, P: remainder_bound(f, c, P)[1])
+    batched = jax.jit(jax.vmap(lambda c: remainder_bound(f, c, P)))(centers)
+    assert batched.dtype == dt and batched.shape == (3, 2)
+    closed = jax.vmap(lambda c: f.remainder_bound(c, P))(centers)
+    np.testing.assert_allclose(batched, closed, rtol=1e-5 if dtype == "float32" else 1e-13)
+    g, gP = jax.jit(jax.grad(bound, argnums=(0, 1)))(centers[0], P)
+    expected = jax.grad(lambda c: f.remainder_bound(c, P)[1])(centers[0])
+    np.testing.assert_allclose(g, expected, rtol=1e-4)
+    # gradient with respect to P11 against central differences
+    h = 1e-3 if dtype == "float32" else 1e-6
+    E = jnp.zeros((2, 2), dt).at[0, 0].set(h * 0.01)
+    fd = (bound(centers[0], P + E) - bound(centers[0], P - E)) / (2 * h * 0.01)
+    np.testing.assert_allclose(gP[0, 0], fd, rtol=1e-2 if dtype == "float32" else 1e-6)
+
+
+def test_bounding_box_contains_ellipsoid():
+    c = jnp.asarray([0.3, -0.2])
+    P = jnp.asarray([[0.04, 0.01], [0.01, 0.09]])
+    box = bounding_box(c, P)
+    assert np.all(np.asarray(box.lo) < np.asarray(c) - np.sqrt([0.04, 0.09]) + 1e-15)
+    assert np.all(np.asarray(box.hi) > np.asarray(c) + np.sqrt([0.04, 0.09]) - 1e-15)
+
+
+def test_unsupported_primitive_is_named():
+    fn = lambda x: jax.lax.fori_loop(0, 2, lambda i, v: v * x, x)
+    with pytest.raises(NotImplementedError, match="scan"):
+        hessian_interval(fn, Interval(jnp.zeros(2), jnp.ones(2)))

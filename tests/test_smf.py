@@ -1,0 +1,183 @@
+"""The nonlinear ellipsoidal SMF and fault detection/isolation: agreement with an independent NumPy
+loop, the containment guarantee, alarms, the unbounded-set behaviour, transforms, the study."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxest.run import Status, run
+from jaxest.setmembership import fdi
+from jaxest.setmembership.ellipsoid import Ellipsoid
+from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter, set_membership_filter
+from jaxest.studies import smf_fdi
+from jaxest.systems import duffing
+
+_spec = importlib.util.spec_from_file_location(
+    "smf_numpy_reference", Path(__file__).parent.parent / "benchmarks" / "smf.py"
+)
+reference = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(reference)
+
+
+def _filter_runs(keys, L, closed_form_bound=True, mask=(True, True)):
+    model, prior = duffing.model(closed_form_bound), smf_fdi.first_prior(closed_form_bound)
+
+    def one(key):
+        states, ys = smf_fdi.simulate_run(key, L)
+        result = run(
+            SetMembershipFilter(), model, fdi.sensor_subset(ys, jnp.asarray(mask)), None, prior
+        )
+        return states, ys, result
+
+    return jax.jit(jax.vmap(one))(keys)
+
+
+@pytest.mark.parametrize("mask", [(True, True), (True, False)])
+def test_matches_numpy_reference(mask):
+    keys = jax.random.split(jax.random.key(1), 3)
+    _, ys, result = _filter_runs(keys, 1, mask=mask)
+    prior = smf_fdi.first_prior(True)
+    model = duffing.model(True)
+    for r in range(3):
+        centres, shapes, empties = reference.numpy_smf(
+            np.asarray(ys[r]), np.asarray(prior.center), np.asarray(prior.shape),
+            np.asarray(model.process_bound), np.asarray(model.measurement_bound), mask,
+        )  # fmt: skip
+        np.testing.assert_allclose(result.center[r], centres, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(result.shape[r], shapes, rtol=1e-9, atol=1e-14)
+        np.testing.assert_array_equal(result.inconsistent[r], empties)
+
+
+def test_fault_free_sets_contain_the_state_and_never_alarm():
+    keys = jax.random.split(jax.random.key(2), 40)
+    for mask in ((True, True), (True, False), (False, True)):
+        states, _, result = _filter_runs(keys, None, closed_form_bound=False, mask=mask)
+        assert bool(jnp.all(jax.vmap(lambda r, s: r.contains(s))(result, states)))
+        assert not bool(jnp.any(result.status & (Status.EMPTY_SET | Status.NONFINITE)))
+
+
+def test_large_bias_is_detected_at_its_onset_and_never_before():
+    keys = jax.random.split(jax.random.key(3), 10)
+    _, _, result = _filter_runs(keys, 20.0)  # bias 0.23, far beyond the noise bound
+    first = np.asarray(fdi.first_alarm(result.inconsistent))
+    np.testing.assert_array_equal(first, duffing.FAULT_START)
+
+
+def _unstable_model(dtype):
+    """x1 grows (never observed), x2 is measured: the set must grow without bound."""
+    f = lambda x, u: jnp.stack([1.5 * x[0] + 0.2 * x[0] ** 2, 0.5 * x[1]])
+    return BoundedNoiseModel(
+        f, lambda x, u: x[1:], jnp.full(2, 0.01, dtype), jnp.full(1, 0.01, dtype)
+    )
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_unbounded_set_is_reported_not_nan(dtype):
+    model = _unstable_model(dtype)
+    prior = Ellipsoid(jnp.asarray([0.5, 0.0], dtype), 0.01 * jnp.eye(2, dtype=dtype))
+    ys = jnp.zeros((60, 1), dtype)
+    result = jax.jit(lambda ys: set_membership_filter(model, ys, prior))(ys)
+    unbounded = np.asarray(result.unbounded)
+    assert unbounded[-1] and not unbounded[0]
+    start = np.argmax(unbounded)
+    assert np.all(unbounded[start:])  # absorbing
+    assert np.all(np.isfinite(result.center))
+    assert np.all(np.isinf(np.diagonal(result.shape[start:], axis1=1, axis2=2)))
+    assert not np.any(np.asarray(result.inconsistent[start:]))
+    assert np.all(np.asarray(result.contains(jnp.full((60, 2), 1e9, dtype)))[start:])
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_filter_under_jit_vmap_grad(dtype):
+    _, ys, _ = _filter_runs(jax.random.split(jax.random.key(4), 2), None)
+    ys = ys.astype(dtype)[:, :30]
+    prior = Ellipsoid(jnp.asarray(duffing.X0, dtype), 0.01 * jnp.eye(2, dtype=dtype))
+
+    def log_volume(w):
+        model = duffing.model(closed_form_bound=True, dtype=dtype)
+        model = BoundedNoiseModel(
+            model.f, model.h, jnp.full(2, w), model.measurement_bound, model.f_remainder
+        )
+        result = run(SetMembershipFilter(), model, ys[0], None, prior)
+        return jnp.linalg.slogdet(result.shape[-1])[1]
+
+    batched = jax.jit(
+        jax.vmap(
+            lambda y: run(SetMembershipFilter(), duffing.model(True, dtype), y, None, prior).shape
+        )
+    )(ys)
+    assert batched.dtype == dtype and batched.shape == (2, 30, 2, 2)
+    w = jnp.asarray(duffing.PROCESS_BOUND, dtype)
+    grad = jax.jit(jax.grad(log_volume))(w)
+    eps = 1e-4 if dtype == jnp.float32 else 1e-7
+    fd = (log_volume(w + eps) - log_volume(w - eps)) / (2 * eps)
+    assert np.isfinite(grad) and grad > 0  # more process noise, a larger set
+    np.testing.assert_allclose(grad, fd, rtol=5e-2 if dtype == jnp.float32 else 1e-4)
+
+
+def test_isolation_decisions_and_scores():
+    # filter 0 (method 1: sensor 1 only) empty at steps 3 and 5; filter 1 never
+    inconsistent = np.zeros((2, 6), bool)
+    inconsistent[0, [2, 4]] = True
+    m1 = np.asarray(fdi.isolation_decisions(inconsistent, 1))
+    np.testing.assert_array_equal(m1[:, 0], inconsistent[0])
+    # method 2 bank: filter i sees every sensor but i; sensor 1 faulty -> filter 1 (sensor 2 only) fine
+    m2 = np.asarray(fdi.isolation_decisions(inconsistent[::-1], 2))
+    np.testing.assert_array_equal(m2[:, 0], inconsistent[0])
+    assert not m2[:, 1].any()
+    both = np.ones((2, 6), bool)  # every filter empty: no sensor isolated by method 2
+    assert not np.asarray(fdi.isolation_decisions(both, 2)).any()
+    alarms = np.zeros((4, 10), bool)
+    alarms[0, 1] = True  # step 2: a false alarm
+    alarms[1, 6] = True  # step 7: delay 2 from fault_start 5
+    alarms[2, 4] = True  # step 5: delay 0
+    s = fdi.score(alarms, fault_start=5)
+    assert s["false_alarm_rate"] == 0.25 and s["missed_rate"] == 0.5
+    assert (s["min_delay"], s["max_delay"], s["mean_delay"]) == (0, 2, 1.0)
+    assert abs(fdi.chi_square_threshold(2, 0.01) - 9.21034) < 1e-4
+    assert abs(fdi.chi_square_threshold(3, 0.05) - 7.814728) < 1e-4
+
+
+def test_arguments_are_checked_before_tracing():
+    model, prior = duffing.model(), duffing.prior()
+    with pytest.raises(ValueError, match="ys"):
+        set_membership_filter(model, jnp.zeros((5, 3)), prior)
+    with pytest.raises(ValueError, match="prior.shape"):
+        set_membership_filter(model, jnp.zeros((5, 2)), Ellipsoid(prior.center, -jnp.eye(2)))
+    with pytest.raises(ValueError, match="prior"):
+        set_membership_filter(model, jnp.zeros((5, 2)), (prior.center, prior.shape))
+    with pytest.raises(ValueError, match="process_bound"):
+        bad = BoundedNoiseModel(model.f, model.h, -model.process_bound, model.measurement_bound)
+        set_membership_filter(bad, jnp.zeros((5, 2)), prior)
+
+
+@pytest.mark.slow
+def test_study_quick_writes_summary(tmp_path):
+    summary = smf_fdi.run(tmp_path, runs=8, seed=0, quick=True, options={})
+    written = json.loads((tmp_path / "smf-fdi" / "summary.json").read_text())
+    assert written["runs"] == 8 and written["containment_rate"] == 1.0
+    for key in ("detection", "isolation_method1", "isolation_method2"):
+        for L in ("0", "1", "2"):
+            entry = written[key][L]
+            assert set(entry) >= {
+                "missed_rate",
+                "false_alarm_rate",
+                "min_delay",
+                "max_delay",
+                "mean_delay",
+            }
+            assert entry["false_alarm_rate"] == 0.0
+    assert 0.0 <= written["ekf_chi2"]["false_alarm_rate"] <= 1.0 and "wall_seconds" in written
+    assert summary["automatic_bound_check"]["same_detection_flags"]
+    for name in (
+        "fig1_smf_bounds.png",
+        "fig2_ekf_bounds.png",
+        "fig3_remainder_bound.png",
+        "tables.md",
+    ):
+        assert (tmp_path / "smf-fdi" / name).exists()
