@@ -39,6 +39,11 @@ def _parser() -> argparse.ArgumentParser:
     rep.add_argument(
         "--data", type=Path, default=None, help="flight data directory (svd-ekf study)"
     )
+    rep.add_argument(
+        "--b747-printed",
+        action="store_true",
+        help="adaptive study: the Boeing 747 matrices as printed in the scan, not the published ones",
+    )
     return parser
 
 
@@ -64,7 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"== {name}: {_describe(name)}", file=sys.stderr)
         module = studies.load(name)
         module.run(
-            args.out, runs=args.runs, seed=args.seed, quick=args.quick, options={"data": args.data}
+            args.out,
+            runs=args.runs,
+            seed=args.seed,
+            quick=args.quick,
+            options={"data": args.data, "printed_747": args.b747_printed},
         )
         index[name] = {
             "seconds": round(time.perf_counter() - start, 2),
