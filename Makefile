@@ -26,7 +26,7 @@ lint: $(BIN)/.installed-dev
 	$(BIN)/ruff format --check .
 
 test: lint
-	$(BIN)/python -m pytest -n 2 -q
+	$(BIN)/python -m pytest -n 2 -q --durations=20
 
 format: $(BIN)/.installed-dev
 	$(BIN)/ruff check --fix .
