@@ -10,10 +10,10 @@ paper's SVD filter, ...) in float64 and float32 and d = 1e-1 ... 1e-16 (null whe
 from __future__ import annotations
 
 import argparse
-import json
 
 import jax
 
+from jaxest.report import emit_json
 from jaxest.studies.filters import robustness
 
 
@@ -24,11 +24,7 @@ def main(argv=None):
     parser.add_argument("--json", help="write the results here as well as to stdout")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
-    text = json.dumps({"results": robustness()}, indent=1)
-    if args.json:
-        with open(args.json, "w") as fh:
-            fh.write(text)
-    print(text)
+    emit_json({"results": robustness()}, args.json)
 
 
 if __name__ == "__main__":

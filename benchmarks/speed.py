@@ -23,6 +23,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jaxest as je  # noqa: E402
 from jaxest.filters import KalmanFilter  # noqa: E402
+from jaxest.report import emit_json  # noqa: E402
 from jaxest.systems.duffing import Duffing  # noqa: E402
 
 T, RUNS = 1000, 200
@@ -148,11 +149,7 @@ def main(argv=None):
     for r in rows:
         if r["pass"] == "value_and_grad":
             r["grad_over_forward"] = r["jaxest_us_per_step"] / forward[(r["problem"], r["mode"])]
-    text = json.dumps({"device": str(jax.devices()[0]), "rows": rows}, indent=1)
-    if args.json:
-        with open(args.json, "w") as fh:
-            fh.write(text)
-    print(text)
+    emit_json({"device": str(jax.devices()[0]), "rows": rows}, args.json)
 
 
 if __name__ == "__main__":

@@ -38,3 +38,13 @@ def markdown_table(headers: list[str], rows: list[list], floatfmt: str = ".4g") 
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
     return "\n".join(lines) + "\n"
+
+
+def emit_json(data, path=None) -> str:
+    """Print ``data`` as JSON (non-finite numbers as null) and write it to ``path`` if given:
+    the output of every benchmark script."""
+    text = json.dumps(to_jsonable(data), indent=1)
+    if path:
+        Path(path).write_text(text)
+    print(text)
+    return text
