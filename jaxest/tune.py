@@ -72,7 +72,8 @@ def fit(
             (Cholesky parametrisation) or a dict path -> ``"cholesky"`` / ``"log_diagonal"``.
         free: optional path -> boolean mask of the unconstrained parameter's free entries
             (shape n x n for Cholesky, n for log-diagonal).
-        optimizer: an optax transformation (default ``optax.adam(0.05)``).
+        optimizer: an optax transformation (default ``optax.adam(0.05)``); line-search
+            methods such as ``optax.lbfgs()`` work too (they receive the value and the loss).
         num_steps: optimiser steps.
     """
     if not isinstance(params, dict):
@@ -87,7 +88,7 @@ def fit(
         if getattr(P, "ndim", 0) != 2:
             raise ValueError(f"params[{path!r}]: expected a constant n x n matrix to fit")
     free = free or {}
-    optimizer = optimizer or optax.adam(0.05)
+    optimizer = optax.with_extra_args_support(optimizer or optax.adam(0.05))
     theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}
     masks = {p: jnp.asarray(free.get(p, jnp.ones_like(t)), t.dtype) for p, t in theta0.items()}
 
@@ -100,10 +101,14 @@ def fit(
             )
         return out
 
+    objective = lambda theta: loss(build(theta))
+
     @jax.jit
     def update(theta, opt_state):
-        value, grads = jax.value_and_grad(lambda t: loss(build(t)))(theta)
-        updates, opt_state = optimizer.update(grads, opt_state, theta)
+        value, grads = jax.value_and_grad(objective)(theta)
+        updates, opt_state = optimizer.update(
+            grads, opt_state, theta, value=value, grad=grads, value_fn=objective
+        )
         return optax.apply_updates(theta, updates), opt_state, value
 
     def body(carry, _):
