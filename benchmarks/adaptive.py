@@ -7,7 +7,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 
@@ -37,6 +36,7 @@ def main() -> None:
     jax.config.update("jax_enable_x64", True)
 
     from jaxest.observers.adaptive import DiscreteAdaptiveObserver, ObserverPrior
+    from jaxest.report import emit_json
     from jaxest.run import run
     from jaxest.studies.adaptive import (
         DT,
@@ -84,11 +84,7 @@ def main() -> None:
             "discrete_single_sim_s_per_wall_s": simulated / dsingle,
             "discrete_vmap_sim_s_per_wall_s": args.batch * simulated / dmany,
         }
-    text = json.dumps(results, indent=2)
-    print(text)
-    if args.json:
-        with open(args.json, "w") as fh:
-            fh.write(text + "\n")
+    emit_json(results, args.json)
 
 
 if __name__ == "__main__":

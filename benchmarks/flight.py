@@ -9,7 +9,6 @@ number of steps (and by the number of runs for the per-run figure), after a warm
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import tempfile
 import time
@@ -22,6 +21,7 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 
 from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF  # noqa: E402
+from jaxest.report import emit_json  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
 from jaxest.systems import flight_data  # noqa: E402
 from jaxest.systems import flight_sim as sim  # noqa: E402
@@ -80,10 +80,7 @@ def main() -> None:
     }
     if args.study != "none":
         result[f"study_{args.study}_s"] = study_time(args.study == "quick")
-    text = json.dumps(result, indent=2)
-    print(text)
-    if args.json:
-        args.json.write_text(text)
+    emit_json(result, args.json)
 
 
 if __name__ == "__main__":

@@ -21,6 +21,7 @@ import scipy.integrate
 jax.config.update("jax_enable_x64", True)
 
 from jaxest.network import CommunicationStructure, NetworkFilter, steady_state  # noqa: E402
+from jaxest.report import emit_json  # noqa: E402
 from jaxest.run import Gaussian, run  # noqa: E402
 from jaxest.systems.chain import initial_prior, mass_chain  # noqa: E402
 
@@ -143,10 +144,7 @@ def main():
         rows.append(row)
         print(json.dumps(row))
     result = {"benchmark": "network", "device": jax.devices()[0].platform, "rows": rows}
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(result, fh, indent=2)
-    print(json.dumps(result, indent=2))
+    emit_json(result, args.json)
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ NOTES.md §2 with the printed (unnormalised) eq 36, and the tests use it as an i
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -104,6 +103,8 @@ def main(argv=None):
 
     import jax
 
+    from jaxest.report import emit_json
+
     jax.config.update("jax_enable_x64", True)
     from jaxest.studies import smf_fdi
     from jaxest.systems import duffing
@@ -142,9 +143,7 @@ def main(argv=None):
         "runs": args.runs,
         "device": str(jax.devices()[0]),
     }
-    print(json.dumps(result, indent=2))
-    if args.json:
-        args.json.write_text(json.dumps(result, indent=2))
+    emit_json(result, args.json)
     return 0
 
 

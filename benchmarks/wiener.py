@@ -23,6 +23,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxest.filters.kalman import KalmanFilter
+from jaxest.report import emit_json
 from jaxest.run import Gaussian, run
 from jaxest.smoothers.rts import rts_smooth
 from jaxest.smoothers.wiener import WienerSmoother
@@ -97,10 +98,7 @@ def main(argv=None):
         "machine": platform.machine(),
         "results": rows,
     }
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
-    print(json.dumps(result, indent=2))
+    emit_json(result, args.json)
 
 
 if __name__ == "__main__":
