@@ -41,3 +41,32 @@ def test_hfb320_has_no_altitude():
     assert np.all(np.isnan(d.outputs[:, 5]))
     assert 100 < np.mean(d.outputs[:, 0]) < 115
     assert -10.5 < np.mean(d.inputs[:, 2]) < -9.0  # AZCG is column 11 whatever README says
+
+
+def test_advance_channels_shifts_by_whole_and_half_samples():
+    rng = np.random.default_rng(0)
+    y = rng.normal(size=(30, 3))
+    out = np.asarray(flight_data.advance_channels(y, 0.04, [0.0, 0.08, 0.06], [0.0, 0.1, 0.1]))
+    np.testing.assert_allclose(out[:, 0], y[:, 0], rtol=1e-6)  # no delay, no limit: untouched
+    np.testing.assert_allclose(out[:27, 1], y[2:29, 1], rtol=1e-6)  # two samples later
+    np.testing.assert_allclose(out[:27, 2], 0.5 * (y[1:28, 2] + y[2:29, 2]), rtol=1e-5)
+    # the last ceil(0.1 / 0.04) = 3 samples are missing for every delay up to the limit
+    assert np.all(np.isnan(out[27:, 1:])) and np.all(np.isfinite(out[:27]))
+
+
+def test_advance_channels_derivative_matches_finite_differences():
+    import jax
+
+    with jax.enable_x64(True):
+        y = np.sin(np.linspace(0.0, 3.0, 40))[:, None]
+        f = lambda d: jax.numpy.nansum(flight_data.advance_channels(y, 0.1, d, [0.5]) ** 3)
+        d = np.array([0.123])
+        fd = (f(d + 1e-6) - f(d - 1e-6)) / 2e-6
+        np.testing.assert_allclose(jax.grad(f)(d)[0], fd, rtol=1e-6)
+
+
+def test_advance_channels_rejects_bad_limits():
+    with pytest.raises(ValueError, match="max_delays"):
+        flight_data.advance_channels(np.zeros((5, 2)), 0.1, [0.0, 0.1], [0.1])
+    with pytest.raises(ValueError, match="max_delays"):
+        flight_data.advance_channels(np.zeros((5, 2)), 0.1, [0.0, 0.1], [0.0, -0.1])

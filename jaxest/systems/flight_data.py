@@ -11,6 +11,10 @@ be copied into it: give their directory (or set ``JAXEST_FLIGHT_DATA``), or keep
 Every record is returned in the units of :mod:`jaxest.systems.flight`: inputs
 [a_x, a_y, a_z (m/s^2), p, q, r (rad/s)] and outputs [V (m/s), beta, alpha, theta, phi (rad),
 h (m)], NaN for a channel the file lacks (the filters treat NaN as missing).
+
+Sensor time delays (time skew): the flow vanes of the ATTAS lag the inertial sensors by about a tenth
+of a second, a usual finding of flight-path reconstruction. :func:`advance_channels` undoes such
+delays so that the model, which evaluates every output at the inputs' sample time, fits the data.
 """
 
 from __future__ import annotations
@@ -19,6 +23,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 DEG = np.pi / 180.0
@@ -133,3 +139,29 @@ def load_hfb320(data_dir: str | Path | None = None) -> FlightData:
         inputs=_channels(table, _HFB_INPUTS),
         outputs=_channels(table, _HFB_OUTPUTS),
     )
+
+
+def advance_channels(outputs, dt: float, delays, max_delays) -> jax.Array:
+    """``outputs`` (T x m) with channel j read ``delays[j]`` seconds later: sample k becomes the
+    channel's value at t_k + delays[j], interpolated linearly between samples. This undoes a sensor
+    that lags the others by ``delays[j]``; it is differentiable in ``delays`` and ``vmap``s over them.
+
+    The last ceil(max_delays[j] / dt) samples of channel j are marked missing (NaN) whatever its
+    delay, so that runs with any delays up to ``max_delays`` (numbers, not traced) filter the same
+    measurements and their log-likelihoods can be compared.
+    """
+    outputs = jnp.asarray(outputs)
+    max_delays = np.asarray(max_delays, dtype=float)
+    if max_delays.shape != (outputs.shape[1],) or np.any(max_delays < 0):
+        raise ValueError(
+            f"max_delays: expected {outputs.shape[1]} non-negative numbers, got {max_delays}"
+        )
+    steps = outputs.shape[0]
+    index = jnp.arange(steps, dtype=outputs.dtype)
+    shifted = jax.vmap(
+        lambda y, d: jnp.interp(index + d / dt, index, y), in_axes=(1, 0), out_axes=1
+    )
+    advanced = shifted(outputs, jnp.asarray(delays, outputs.dtype))
+    tail = np.ceil(max_delays / dt - 1e-9).astype(int)
+    kept = np.arange(steps)[:, None] < steps - tail[None, :]
+    return jnp.where(kept, advanced, jnp.nan)
