@@ -64,19 +64,22 @@ HFB320_NOISE = {"V": 0.13, "alpha": 0.057, "theta": 0.025}
 #: why the sensor parameters estimated on different maneuvers need not agree within their
 #: standard deviations (the summary lists those that do)
 BIAS_AGREEMENT_NOTE = (
-    "Each maneuver's parameters are compared with the filter's formal standard deviations, which "
-    "assume an exact model with white noise and no wind. (1) The model has no wind or turbulence: "
-    "the difference between the inertial velocity (integrated accelerations) and the air-relative "
-    "one (V, alpha, beta) is explained by sensor parameters; the maximum-likelihood input noise "
-    "(a_x, a_z far above accelerometer noise) measures that mismatch. (2) In one short maneuver "
-    "several parameters are nearly collinear: bias and scale factor of a channel that barely moves "
-    "(b_V/lam_V, b_h/lam_h, b_alpha/lam_alpha), b_theta with b_ax and b_V through gravity, b_phi "
-    "with b_ay in a longitudinal maneuver; they absorb the errors of (1) and differ by many formal "
-    "sigmas. (3) In the aileron record the phi innovation follows the bank angle itself (about 1.7 "
-    "% of phi, up to 0.9 deg), an error no parameter of eq 28 describes (roll-gyro scale factor or "
-    "attitude-reference error), which pulls b_p, b_r and b_phi. (4) The records are separate "
-    "flights' maneuvers; offsets such as the altitude bias may truly differ. Even with an exact "
-    "model the simulated NEES (above 23) shows the formal sigmas somewhat too small."
+    "On the ATTAS records each maneuver's parameters are compared with the filter's formal standard "
+    "deviations, which assume an exact model and white noise. What does not agree: (1) parameters "
+    "that one maneuver fixes only along a nearly collinear direction: bias and scale factor of a "
+    "channel that barely moves (b_V/lam_V, b_h/lam_h, b_alpha/lam_alpha), b_phi with b_ay while the "
+    "bank angle stays near zero (the elevator maneuver puts b_phi degrees off), b_theta with b_ax "
+    "and b_V through gravity; small model errors move them far along that direction. (2) b_p is "
+    "resolved to about 0.003 deg/s and differs between records by up to 0.02 deg/s, a normal "
+    "change of gyro bias between separate flights or power cycles: the model's constant bias holds "
+    "within a record, not across records. (3) The pressure-altitude error depends on the flight "
+    "condition, not only on a bias and a scale factor. (4) In the aileron record the phi innovation "
+    "follows the bank angle (about 1.7 % of phi, up to 0.9 deg), an error no parameter of eq 28 "
+    "describes (roll-gyro scale factor or attitude-reference error); it pulls b_p, b_r and b_phi. "
+    "The tuned input noise (a_x, a_z far above accelerometer noise) shows unmodelled air-relative "
+    "motion too, but earth-axis wind states (random walks) made only the flow-angle parameters "
+    "agree, by widening their sigmas. Even with an exact model the simulated NEES (above 23) shows "
+    "the formal sigmas somewhat too small."
 )
 
 
