@@ -4,6 +4,8 @@ the factored (SVD) filters."""
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -12,7 +14,9 @@ from jaxtyping import Array, Float, Int
 from jaxest.linalg import mm, sandwich, symmetrize
 from jaxest.run import FilterResult, Gaussian, Status, check_finite_status
 
-LOG_2PI = float(jnp.log(2.0 * jnp.pi))
+#: a Python float: computing it with jnp would start the XLA backend at import (which
+#: jax.distributed.initialize forbids) and fix it in float32 before x64 is switched on
+LOG_2PI = math.log(2.0 * math.pi)
 
 
 class StepOutput(eqx.Module):
