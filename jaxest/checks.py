@@ -72,6 +72,15 @@ def check_sequence(name: str, value, length=None, dim=None):
         raise ValueError(f"{name}: expected {dim} columns, got {shape[1]}")
 
 
+def check_prior(prior):
+    """Raise ``ValueError`` naming ``init`` unless ``prior`` is a :class:`jaxest.Gaussian`."""
+    from jaxest.run import Gaussian
+
+    if not isinstance(prior, Gaussian):
+        raise ValueError(f"init: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}")
+    return prior
+
+
 def _time_length(name, arr, T):
     if arr is not None and np.ndim(arr) == 3 and arr.shape[0] < T:
         raise ValueError(
@@ -82,14 +91,12 @@ def _time_length(name, arr, T):
 def check_filter_arguments(model, ys, inputs, init):
     """All checks of :func:`jaxest.filter`'s arguments."""
     from jaxest.models import LinearGaussian, NonlinearGaussian
-    from jaxest.run import Gaussian
 
     check_sequence("ys", ys)
     T, m = np.shape(ys)
     if inputs is not None:
         check_sequence("inputs", inputs, length=T)
-    if not isinstance(init, Gaussian):
-        raise ValueError(f"init: expected jaxest.Gaussian(mean, cov), got {type(init).__name__}")
+    check_prior(init)
     if np.ndim(init.mean) != 1:
         raise ValueError(f"init.mean: expected a vector, got shape {np.shape(init.mean)}")
     n = np.shape(init.mean)[0]

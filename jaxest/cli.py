@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import argparse
-import importlib
-import json
 import sys
 import time
 from pathlib import Path
 
 from jaxest import studies
+from jaxest.report import write_json
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -49,7 +48,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _describe(name: str) -> str:
     try:
-        return importlib.import_module(studies.STUDIES[name]).DESCRIPTION
+        return studies.load(name).DESCRIPTION
     except ImportError as err:  # a study whose optional pieces are missing still lists
         return f"(unavailable: {err})"
 
@@ -82,5 +81,5 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}", file=sys.stderr
         )
-    (args.out / "index.json").write_text(json.dumps(index, indent=2))
+    write_json(args.out / "index.json", index)
     return 0

@@ -61,10 +61,19 @@ def cho_solve_lower(L, B):
     return jax.scipy.linalg.solve_triangular(L.T, Z, lower=False)
 
 
+def chol_inverse(L):
+    """(L L^T)^-1, symmetric, from the lower-triangular factor L."""
+    return symmetrize(cho_solve_lower(L, jnp.eye(L.shape[-1], dtype=L.dtype)))
+
+
 def inv_spd(P):
     """Inverse of a symmetric positive definite matrix through its Cholesky factor."""
-    L = jnp.linalg.cholesky(P)
-    return symmetrize(cho_solve_lower(L, jnp.eye(P.shape[-1], dtype=P.dtype)))
+    return chol_inverse(jnp.linalg.cholesky(P))
+
+
+def logdet_chol(L):
+    """ln det (L L^T) from the lower-triangular factor L (positive diagonal)."""
+    return 2.0 * jnp.sum(jnp.log(jnp.diag(L)))
 
 
 #: largest m * k * n for which :func:`mm` multiplies by broadcasting instead of a dot

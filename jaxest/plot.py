@@ -19,10 +19,11 @@ def subplots(nrows=1, ncols=1, width=6.0, height=3.6, **kwargs):
     )
 
 
-def save(fig, path: Path) -> Path:
-    """Save ``fig`` as PNG at ``path`` and close it."""
+def save(fig, path: Path, dpi: int = 120) -> Path:
+    """Save ``fig`` as PNG at ``path`` (``dpi`` dots per inch) and close it."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
     return path

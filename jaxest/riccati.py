@@ -86,10 +86,10 @@ def _solve_lyapunov(Ac, C):
     n = Ac.shape[-1]
     eye = jnp.eye(n, dtype=Ac.dtype)
     g = jnp.maximum(jnp.linalg.norm(Ac) / jnp.sqrt(n), jnp.finfo(Ac.dtype).tiny)
-    shifted = Ac - g * eye
-    T = jnp.linalg.solve(shifted, Ac + g * eye)
-    M = jnp.linalg.solve(shifted, C)
-    return _solve_stein(T, 2 * g * jnp.linalg.solve(shifted, M.T).T)
+    shifted = jax.scipy.linalg.lu_factor(Ac - g * eye)  # one factorisation, three solves
+    T = jax.scipy.linalg.lu_solve(shifted, Ac + g * eye)
+    M = jax.scipy.linalg.lu_solve(shifted, C)
+    return _solve_stein(T, 2 * g * jax.scipy.linalg.lu_solve(shifted, M.T).T)
 
 
 # --------------------------------------------------------------------------- forward solvers
@@ -105,8 +105,7 @@ def _dare_sda(A, B, Q, R):
     def update(carry):
         Ak, Gk, Hk = carry
         W = eye + Gk @ Hk
-        WA = jnp.linalg.solve(W, Ak)
-        WG = jnp.linalg.solve(W, Gk)
+        WA, WG = jnp.split(jnp.linalg.solve(W, jnp.concatenate([Ak, Gk], axis=1)), 2, axis=1)
         H_new = symmetrize(Hk + Ak.T @ Hk @ WA)
         new = (Ak @ WA, symmetrize(Gk + Ak @ WG @ Ak.T), H_new)
         return new, _relative_change(H_new, Hk)

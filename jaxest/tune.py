@@ -102,22 +102,31 @@ def fit(
         return out
 
     objective = lambda theta: loss(build(theta))
-
-    @jax.jit
-    def update(theta, opt_state):
-        value, grads = jax.value_and_grad(objective)(theta)
-        updates, opt_state = optimizer.update(
-            grads, opt_state, theta, value=value, grad=grads, value_fn=objective
-        )
-        return optax.apply_updates(theta, updates), opt_state, value
+    opt_state0 = optimizer.init(theta0)
+    value_and_grad = _value_and_grad(objective, opt_state0)
 
     def body(carry, _):
         theta, opt_state = carry
-        theta, opt_state, value = update(theta, opt_state)
-        return (theta, opt_state), value
+        value, grads = value_and_grad(theta, state=opt_state)
+        updates, opt_state = optimizer.update(
+            grads, opt_state, theta, value=value, grad=grads, value_fn=objective
+        )
+        return (optax.apply_updates(theta, updates), opt_state), value
 
-    (theta, _), losses = jax.lax.scan(body, (theta0, optimizer.init(theta0)), None, num_steps)
+    (theta, _), losses = jax.lax.scan(body, (theta0, opt_state0), None, num_steps)
     return FitResult(build(theta), losses)
+
+
+def _value_and_grad(objective, opt_state):
+    """Loss and gradient at the current parameter. A line search (``optax.lbfgs``) keeps both for
+    the point it accepted in its state: they are taken from there instead of evaluated again."""
+    try:
+        stored = [optax.tree.get(opt_state, name) for name in ("value", "grad")]
+    except KeyError:  # several line searches in one chain: evaluate
+        stored = [None]
+    if any(s is None for s in stored):
+        return lambda theta, state: jax.value_and_grad(objective)(theta)
+    return optax.value_and_grad_from_state(objective)
 
 
 def neg_loglik(estimator, ys, prior, inputs=None) -> Callable:

@@ -18,6 +18,7 @@ from jaxest.smoothers.steady_state import (
 )
 from jaxest.smoothers.wiener import WienerSmoother, lagged_sum, wiener_smooth
 from jaxest.systems.wiener_example import ARBITRARY_START, PAPER, PRINTED_ADJ_K, paper_model
+from tests.reference import kalman_filter, rts_smoother
 
 wiener_smooth_jit = jax.jit(wiener_smooth, static_argnames=("start", "end_term"))
 steady_state_smooth_jit = jax.jit(steady_state_smooth)
@@ -102,23 +103,9 @@ def test_arma_innovation_model_lemma2(make_model):
 
 def numpy_rts(model, ys, m0, P0):
     """Plain NumPy Kalman filter + Rauch-Tung-Striebel smoother (an independent reference)."""
-    F, H, R = (np.asarray(a) for a in (model.F, model.H, model.R))
-    G = np.asarray(model.noise_gain(0))
-    Q = G @ np.asarray(model.Q) @ G.T
-    x, P = np.asarray(m0), np.asarray(P0)
-    xf, Pf, xp, Pp = [], [], [], []
-    for y in np.asarray(ys):
-        xp.append(x), Pp.append(P)
-        S = H @ P @ H.T + R
-        K = np.linalg.solve(S, H @ P).T
-        x, P = x + K @ (y - H @ x), P - K @ S @ K.T
-        xf.append(x), Pf.append(P)
-        x, P = F @ x, F @ P @ F.T + Q
-    xs = [xf[-1]]
-    for t in range(len(ys) - 2, -1, -1):
-        C = Pf[t] @ F.T @ np.linalg.inv(Pp[t + 1])
-        xs.insert(0, xf[t] + C @ (xs[0] - xp[t + 1]))
-    return np.array(xs)
+    F, H, Q, R = (np.asarray(a) for a in (model.F, model.H, model.Q, model.R))
+    filtered = kalman_filter(F, H, Q, R, m0, P0, np.asarray(ys), G=np.asarray(model.noise_gain(0)))
+    return rts_smoother(F, *filtered[:4])[0]
 
 
 @pytest.mark.parametrize("make_model", [paper_model, three_state_model], ids=["paper", "3-state"])

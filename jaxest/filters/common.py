@@ -11,8 +11,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from jaxest.checks import check_prior  # noqa: F401 - the filters' prior check, re-exported
 from jaxest.linalg import mm, sandwich, symmetrize
-from jaxest.run import FilterResult, Gaussian, Status, check_finite_status
+from jaxest.run import FilterResult, Status, check_finite_status
 
 #: a Python float: computing it with jnp would start the XLA backend at import (which
 #: jax.distributed.initialize forbids) and fix it in float32 before x64 is switched on
@@ -46,12 +47,6 @@ def pack_result(outputs: StepOutput, final_state) -> FilterResult:
     )
 
 
-def check_prior(prior) -> Gaussian:
-    if not isinstance(prior, Gaussian):
-        raise ValueError(f"init: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}")
-    return prior
-
-
 class Measurement(eqx.Module):
     """A measurement with its missing (NaN) entries neutralised.
 
@@ -82,11 +77,14 @@ def gaussian_loglik(whitened, S_chol, num_observed):
     return -0.5 * (num_observed * LOG_2PI + logdet + whitened @ whitened)
 
 
+def factor_status(L) -> Int[Array, ""]:
+    """``NOT_POSITIVE_DEFINITE`` unless the Cholesky factor L is finite with a positive diagonal."""
+    return _definite_bit(jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diag(L) > 0))
+
+
 def definiteness_status(P) -> Int[Array, ""]:
     """``NOT_POSITIVE_DEFINITE`` unless P has a finite Cholesky factor with a positive diagonal."""
-    L = jnp.linalg.cholesky(symmetrize(P))
-    good = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diag(L) > 0)
-    return jnp.where(good, Status.OK, Status.NOT_POSITIVE_DEFINITE).astype(jnp.int32)
+    return factor_status(jnp.linalg.cholesky(symmetrize(P)))
 
 
 def joseph_update(x, P, meas: Measurement):
@@ -129,9 +127,19 @@ def covariance_step(model, x, P, y, u, k):
     return x_next, P_next, (x_post, P_post, meas.innovation, S, loglik)
 
 
-def step_status(*arrays, cov=None) -> Int[Array, ""]:
-    """Status bits of one step: non-finite values, and loss of definiteness of ``cov``."""
+def step_status(*arrays, cov=None, cov_factor=None, positive=None) -> Int[Array, ""]:
+    """Status bits of one step: non-finite values, and loss of definiteness of ``cov``, of the
+    covariance whose Cholesky factor ``cov_factor`` is at hand, or as a filter's own boolean
+    test ``positive`` of its factors says."""
     status = check_finite_status(*arrays)
     if cov is not None:
         status = status | definiteness_status(cov)
+    if cov_factor is not None:
+        status = status | factor_status(cov_factor)
+    if positive is not None:
+        status = status | _definite_bit(positive)
     return status
+
+
+def _definite_bit(positive) -> Int[Array, ""]:
+    return jnp.where(positive, Status.OK, Status.NOT_POSITIVE_DEFINITE).astype(jnp.int32)

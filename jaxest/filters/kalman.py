@@ -21,7 +21,7 @@ from jaxest.filters.common import (
     pack_result,
     step_status,
 )
-from jaxest.linalg import cho_solve_lower, inv_spd, symmetrize
+from jaxest.linalg import chol_inverse, inv_spd, logdet_chol, symmetrize
 
 
 class CovarianceState(eqx.Module):
@@ -59,6 +59,37 @@ def information_loglik(e, R_inv, b, P_post, logdet_R, logdet_prior, logdet_post,
     return -0.5 * (num_observed * LOG_2PI + logdet_R + logdet_prior - logdet_post + quad)
 
 
+class InformationUpdate(eqx.Module):
+    """The information-form measurement update shared by :class:`EKF` and
+    :class:`InformationFilter` (eq 9): Y+ = Y- + H^T R^-1 H and what is derived from it."""
+
+    P_post: Float[Array, "n n"]
+    info_post: Float[Array, "n n"]  # Y+ = P+^-1
+    post_chol: Float[Array, "n n"]  # its Cholesky factor
+    HtR_inv: Float[Array, "n m"]  # H^T R^-1
+    b: Float[Array, " n"]  # H^T R^-1 e
+    S: Float[Array, "m m"]  # innovation covariance H P- H^T + R
+    loglik: Float[Array, ""]
+
+
+def information_update(info_prior, P, logdet_prior, meas) -> InformationUpdate:
+    """Eq 9 from the prior information matrix ``info_prior`` = P^-1 (and ln det P), with the
+    likelihood term of :func:`information_loglik`."""
+    R_chol = jnp.linalg.cholesky(meas.R)
+    R_inv = chol_inverse(R_chol)
+    HtR_inv = meas.H.T @ R_inv
+    b = HtR_inv @ meas.innovation
+    info_post = info_prior + symmetrize(HtR_inv @ meas.H)
+    post_chol = jnp.linalg.cholesky(info_post)
+    P_post = chol_inverse(post_chol)
+    loglik = information_loglik(
+        meas.innovation, R_inv, b, P_post,
+        logdet_chol(R_chol), logdet_prior, -logdet_chol(post_chol), meas.num_observed,
+    )  # fmt: skip
+    S = symmetrize(meas.H @ P @ meas.H.T + meas.R)
+    return InformationUpdate(P_post, info_post, post_chol, HtR_inv, b, S, loglik)
+
+
 class EKF(eqx.Module):
     """The paper's EKF, eqs 6-10: covariance-mode time update
     P(k+1|k) = F P(k|k) F^T + G Q G^T (eq 7) and information-mode measurement update
@@ -73,24 +104,12 @@ class EKF(eqx.Module):
         x, P, k = state.mean, state.cov, state.k
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)
-        R_chol = jnp.linalg.cholesky(meas.R)
-        R_inv = symmetrize(cho_solve_lower(R_chol, jnp.eye(R.shape[0], dtype=R.dtype)))
         P_chol = jnp.linalg.cholesky(P)
-        info_prior = symmetrize(cho_solve_lower(P_chol, jnp.eye(x.shape[0], dtype=P.dtype)))
-        info_post = info_prior + symmetrize(meas.H.T @ R_inv @ meas.H)  # eq 9
-        post_chol = jnp.linalg.cholesky(info_post)
-        P_post = symmetrize(cho_solve_lower(post_chol, jnp.eye(x.shape[0], dtype=P.dtype)))
-        b = meas.H.T @ R_inv @ meas.innovation
-        x_post = x + P_post @ b  # eqs 8, 10
-        logdet = lambda L: 2.0 * jnp.sum(jnp.log(jnp.diag(L)))
-        loglik = information_loglik(
-            meas.innovation, R_inv, b, P_post,
-            logdet(R_chol), logdet(P_chol), -logdet(post_chol), meas.num_observed,
-        )  # fmt: skip
-        S = symmetrize(meas.H @ P @ meas.H.T + meas.R)
-        x_next, P_next = covariance_predict(model, x_post, P_post, u, k)  # eqs 6-7
-        status = step_status(x_next, P_next, loglik, cov=P_post)
-        out = StepOutput(x, P, x_post, P_post, meas.innovation, S, loglik, status)
+        upd = information_update(chol_inverse(P_chol), P, logdet_chol(P_chol), meas)  # eq 9
+        x_post = x + upd.P_post @ upd.b  # eqs 8, 10
+        x_next, P_next = covariance_predict(model, x_post, upd.P_post, u, k)  # eqs 6-7
+        status = step_status(x_next, P_next, upd.loglik, cov=upd.P_post)
+        out = StepOutput(x, P, x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
         return CovarianceState(x_next, P_next, k + 1), out
 
     result = staticmethod(pack_result)
@@ -119,33 +138,20 @@ class InformationFilter(eqx.Module):
 
     def step(self, model, state: InformationState, y, u):
         Y, k = state.info_matrix, state.k
-        n = Y.shape[0]
-        eye = jnp.eye(n, dtype=Y.dtype)
         Y_chol = jnp.linalg.cholesky(Y)
-        P = symmetrize(cho_solve_lower(Y_chol, eye))
+        P = chol_inverse(Y_chol)
         x = P @ state.info_vector
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)
-        R_chol = jnp.linalg.cholesky(meas.R)
-        R_inv = symmetrize(cho_solve_lower(R_chol, jnp.eye(R.shape[0], dtype=R.dtype)))
-        b = meas.H.T @ R_inv @ meas.innovation
-        Y_post = Y + symmetrize(meas.H.T @ R_inv @ meas.H)
-        post_chol = jnp.linalg.cholesky(Y_post)
-        P_post = symmetrize(cho_solve_lower(post_chol, eye))
-        x_post = P_post @ (state.info_vector + meas.H.T @ R_inv @ (meas.H @ x) + b)
-        logdet = lambda L: 2.0 * jnp.sum(jnp.log(jnp.diag(L)))
-        loglik = information_loglik(
-            meas.innovation, R_inv, b, P_post,
-            logdet(R_chol), -logdet(Y_chol), -logdet(post_chol), meas.num_observed,
-        )  # fmt: skip
-        S = symmetrize(meas.H @ P @ meas.H.T + meas.R)
+        upd = information_update(Y, P, -logdet_chol(Y_chol), meas)
+        x_post = upd.P_post @ (state.info_vector + upd.HtR_inv @ (meas.H @ x) + upd.b)
         x_next, F, G, Q = model.transition(x_post, u, k)
         F_inv_T = jnp.linalg.inv(F).T
-        A = symmetrize(F_inv_T @ Y_post @ F_inv_T.T)
+        A = symmetrize(F_inv_T @ upd.info_post @ F_inv_T.T)
         inner = inv_spd(Q) + G.T @ A @ G
         Y_next = symmetrize(A - A @ G @ jnp.linalg.solve(inner, G.T @ A))
-        status = step_status(x_next, Y_next, loglik, cov=Y_post)
-        out = StepOutput(x, P, x_post, P_post, meas.innovation, S, loglik, status)
+        status = step_status(x_next, Y_next, upd.loglik, cov_factor=upd.post_chol)
+        out = StepOutput(x, P, x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
         return InformationState(Y_next @ x_next, Y_next, k + 1), out
 
     result = staticmethod(pack_result)

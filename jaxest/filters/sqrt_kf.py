@@ -21,7 +21,6 @@ from jaxest.filters.common import (
     pack_result,
     step_status,
 )
-from jaxest.run import Status
 
 
 class SqrtState(eqx.Module):
@@ -61,10 +60,7 @@ class SquareRootKF(eqx.Module):
         x_next, F, G, Q = model.transition(x_post, u, k)
         S_next = lower_factor(jnp.concatenate([S_post.T @ F.T, jnp.linalg.cholesky(Q).T @ G.T]))
         P_post = S_post @ S_post.T
-        diag_ok = jnp.all(jnp.diag(S_post) != 0)
-        status = step_status(x_next, S_next, loglik) | jnp.where(
-            diag_ok, Status.OK, Status.NOT_POSITIVE_DEFINITE
-        ).astype(jnp.int32)
+        status = step_status(x_next, S_next, loglik, positive=jnp.all(jnp.diag(S_post) != 0))
         out = StepOutput(x, S @ S.T, x_post, P_post, meas.innovation, Se @ Se.T, loglik, status)
         return SqrtState(x_next, S_next, k + 1), out
 

@@ -39,10 +39,10 @@ from jaxest.linalg import (
     cov_tangent_to_factor,
     factor_psd,
     factor_tangent_to_cov,
+    logdet_chol,
     right_svd,
     symmetrize,
 )
-from jaxest.run import Status
 
 
 class SVDState(eqx.Module):
@@ -81,7 +81,7 @@ def paper_svd_step(model, x, U, D, y, u, k):
     x_post = x + P_post @ b  # eqs 8, 24
     loglik = information_loglik(
         meas.innovation, R_inv, b, P_post,
-        2.0 * jnp.sum(jnp.log(jnp.diag(R_chol))),
+        logdet_chol(R_chol),
         2.0 * jnp.sum(jnp.log(D)), 2.0 * jnp.sum(jnp.log(D_post)), meas.num_observed,
     )  # fmt: skip
     S = symmetrize(meas.H @ cov_from_factor(U, D) @ meas.H.T + meas.R)
@@ -146,10 +146,7 @@ def _svd_filter_step(primal, model, state: SVDState, y, u):
     x_next, U_next, D_next, (x_post, P_post, e, S, loglik) = factored_step(
         model, state.mean, state.U, state.D, y, u, state.k, primal=primal
     )
-    positive = jnp.all(D_next > 0)
-    status = step_status(x_next, U_next, D_next, P_post, loglik) | jnp.where(
-        positive, Status.OK, Status.NOT_POSITIVE_DEFINITE
-    ).astype(jnp.int32)
+    status = step_status(x_next, U_next, D_next, P_post, loglik, positive=jnp.all(D_next > 0))
     P_prior = cov_from_factor(state.U, state.D)
     out = StepOutput(state.mean, P_prior, x_post, P_post, e, S, loglik, status)
     return SVDState(x_next, U_next, D_next, state.k + 1), out

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from jaxest.linalg import cho_solve_lower, symmetrize
-from jaxest.run import FilterResult, Status, check_finite_status
+from jaxest.run import FilterResult, check_finite_status
 
 
 class SmootherResult(eqx.Module):
@@ -54,9 +54,9 @@ def rts_smooth(model, result: FilterResult, inputs=None) -> SmootherResult:
         u_seq,
     )
     _, (means, covs, status) = jax.lax.scan(backward, last, args, reverse=True)
-    last_status = jnp.where(jnp.all(jnp.isfinite(last[1])), Status.OK, Status.NONFINITE)
+    last_status = check_finite_status(last[1])
     return SmootherResult(
         jnp.concatenate([means, last[0][None]]),
         jnp.concatenate([covs, last[1][None]]),
-        jnp.concatenate([status, last_status[None].astype(jnp.int32)]) | result.status,
+        jnp.concatenate([status, last_status[None]]) | result.status,
     )

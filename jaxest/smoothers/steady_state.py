@@ -22,9 +22,10 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
-from jaxest.filters.common import LOG_2PI, StepOutput, pack_result
+from jaxest.checks import check_prior
+from jaxest.filters.common import StepOutput, gaussian_loglik, pack_result
 from jaxest.linalg import symmetrize
 from jaxest.models import LinearGaussian
 from jaxest.riccati import solve_dare
@@ -91,11 +92,12 @@ def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
 
 
 class SteadyState(eqx.Module):
-    """x(t|t-1), the gain (computed once, in ``init``) and the time index."""
+    """x(t|t-1), the gain and the Cholesky factor of the innovation covariance (both constant,
+    computed once in ``init``)."""
 
     mean: Float[Array, " n"]
     gain: SteadyStateGain
-    k: Int[Array, ""]
+    innovation_chol: Float[Array, "m m"]
 
 
 class SteadyStateKalmanFilter(eqx.Module):
@@ -111,26 +113,23 @@ class SteadyStateKalmanFilter(eqx.Module):
     gain: SteadyStateGain | None = None
 
     def init(self, model, prior: Gaussian) -> SteadyState:
-        if not isinstance(prior, Gaussian):
-            raise ValueError(
-                f"init: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}"
-            )
+        prior = check_prior(prior)
         gain = steady_state_gain(model) if self.gain is None else self.gain
-        return SteadyState(prior.mean, gain, jnp.zeros((), jnp.int32))
+        return SteadyState(prior.mean, gain, jnp.linalg.cholesky(gain.innovation_cov))
 
     def step(self, model, state: SteadyState, y, u):
         g = state.gain
         e = y - g.H @ state.mean
         x_post = state.mean + g.K @ e
-        S_chol = jnp.linalg.cholesky(g.innovation_cov)
+        S_chol = state.innovation_chol
         z = jax.scipy.linalg.solve_triangular(S_chol, e, lower=True)
-        loglik = -0.5 * (e.shape[0] * LOG_2PI + 2.0 * jnp.sum(jnp.log(jnp.diag(S_chol))) + z @ z)
+        loglik = gaussian_loglik(z, S_chol, e.shape[0])
         x_next = g.Phi @ x_post
         status = check_finite_status(x_next, loglik)
         out = StepOutput(
             state.mean, g.Sigma, x_post, g.filtered_cov, e, g.innovation_cov, loglik, status
         )
-        return SteadyState(x_next, g, state.k + 1), out
+        return SteadyState(x_next, g, S_chol), out
 
     result = staticmethod(pack_result)
 
@@ -219,11 +218,15 @@ class SteadyStateSmootherResult(eqx.Module):
 
 
 def steady_state_smooth(
-    model: LinearGaussian, ys: Float[Array, "T m"], prior: Gaussian
+    model: LinearGaussian,
+    ys: Float[Array, "T m"],
+    prior: Gaussian,
+    gain: SteadyStateGain | None = None,
 ) -> SteadyStateSmootherResult:
     """The non-recursive steady-state fixed-interval smoother, eq 15: the steady-state filter
-    (eq 3) forward, then x(t|N) = x(t|t) + sum_{i=1}^{N-t} K_i eps(t+i) by one backward pass."""
-    gain = steady_state_gain(model)
+    (eq 3) forward, then x(t|N) = x(t|t) + sum_{i=1}^{N-t} K_i eps(t+i) by one backward pass.
+    ``gain`` is :func:`steady_state_gain` of the model (solved here when not given)."""
+    gain = steady_state_gain(model) if gain is None else gain
     filtered = run(SteadyStateKalmanFilter(gain), model, ys, None, prior)
     mean = filtered.mean + backward_gain_sum(gain, filtered.innovation)
     return SteadyStateSmootherResult(mean, filtered.mean, filtered.innovation)

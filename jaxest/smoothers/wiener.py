@@ -38,6 +38,7 @@ from jaxest.run import Gaussian
 from jaxest.smoothers.steady_state import (
     ArmaInnovationModel,
     SteadyStateGain,
+    SteadyStateSmootherResult,
     arma_innovation_model,
     backward_gain_sum,
     steady_state_gain,
@@ -124,7 +125,13 @@ class WienerSmoother(eqx.Module):
         """The optimal initial values x^o(0|N), ..., x^o(n-1|N) (eqs 8-9 / 15) and the final
         innovations eps(N-n+1), ..., eps(N) of the end term, from one pass of the steady-state
         smoother with the filter started at x(0|-1) = ``prior_mean``."""
-        steady = steady_state_smooth(self.model, ys, Gaussian(prior_mean, self.gain.Sigma))
+        prior = Gaussian(prior_mean, self.gain.Sigma)
+        return self.start_from(steady_state_smooth(self.model, ys, prior, self.gain))
+
+    def start_from(
+        self, steady: SteadyStateSmootherResult
+    ) -> tuple[Float[Array, "n n"], Float[Array, "n m"]]:
+        """:meth:`optimal_start` read off a steady-state smoother result already at hand."""
         return steady.mean[: self.order], steady.innovation[-self.order :]
 
     @eqx.filter_jit
