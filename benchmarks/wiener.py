@@ -27,7 +27,7 @@ from jaxest.report import emit_json
 from jaxest.run import Gaussian, run
 from jaxest.smoothers.rts import rts_smooth
 from jaxest.smoothers.wiener import WienerSmoother
-from jaxest.systems.wiener_example import paper_model
+from jaxest.systems.wiener_example import ARBITRARY_START, paper_model
 
 
 def measure(fn, *args, repeats):
@@ -60,7 +60,7 @@ def main(argv=None):
     model = paper_model()
     smoother = WienerSmoother.from_model(model)
     prior = Gaussian(jnp.zeros(2), jnp.eye(2))
-    x0 = jnp.asarray([[10.0, 20.0], [10.0, 20.0]])
+    x0 = jnp.asarray(ARBITRARY_START)
 
     def wiener(ys, final):
         return smoother.smooth(ys, x0, final)

@@ -37,6 +37,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest.checks import check_matrix
+from jaxest.linalg import symmetrize
 from jaxest.observers import excitation
 from jaxest.run import Status, check_finite_status
 
@@ -186,10 +187,6 @@ def _rk4(field, z, t, h, substeps: int):
     return jax.lax.fori_loop(0, substeps, body, z)
 
 
-def _symmetrize(P):
-    return 0.5 * (P + P.T)
-
-
 def _check_tuning(M, Sigma, Q, R, K):
     check_matrix("M", M, spd=True, ndim=2)
     check_matrix("Sigma", Sigma, spd=True, ndim=2)
@@ -201,10 +198,6 @@ def _check_tuning(M, Sigma, Q, R, K):
 
 
 def _check_dimensions(M, Sigma, Q, R, K, prior, n, m, p):
-    if not isinstance(prior, ObserverPrior):
-        raise ValueError(
-            f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
-        )
     shapes = {"prior.x": (prior.x, (n,)), "prior.theta": (prior.theta, (p,)), "M": (M, (p, p))}
     shapes["Sigma"] = (Sigma, (m, m))
     if K is not None:
@@ -251,6 +244,10 @@ class AdaptiveObserver(eqx.Module):
             )
 
     def init(self, model: ContinuousLTV, prior: ObserverPrior, t0: float = 0.0) -> AdaptiveState:
+        if not isinstance(prior, ObserverPrior):
+            raise ValueError(
+                f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
+            )
         A, B, C = model.matrices(t0)
         n, m = A.shape[-1], C.shape[-2]
         dtype = jnp.result_type(prior.x)
@@ -286,7 +283,7 @@ class AdaptiveObserver(eqx.Module):
         e = y - C_k @ state.x
         level = excitation.excitation_level(state.window)
         status = check_finite_status(state.x, state.theta) | excitation.excitation_status(
-            state.window, self.excitation_threshold
+            state.window, level, self.excitation_threshold
         )
         output = AdaptiveResult(state.x, state.theta, state.Gamma, e, level, status)
         # one inverse per sample, not one solve per Runge-Kutta stage (R is small, SPD)
@@ -315,8 +312,8 @@ class AdaptiveObserver(eqx.Module):
             x=x,
             theta=theta,
             Gamma=Gamma,
-            P=None if P is None else _symmetrize(P),
-            window=excitation.push(state.window, _symmetrize(increment)),
+            P=None if P is None else symmetrize(P),
+            window=excitation.push(state.window, symmetrize(increment)),
         )
         return new, output
 
@@ -364,10 +361,10 @@ class DiscreteAdaptiveObserver(eqx.Module):
             raise ValueError(f"forgetting: must be in (0, 1], got {self.forgetting}")
 
     def init(self, model: DiscreteLTV, prior: ObserverPrior) -> DiscreteState:
-        F, _, H = model.matrices(0)
-        n, m, p = F.shape[-1], H.shape[-2], np.shape(prior.theta)[0]
         if not isinstance(prior, ObserverPrior) or prior.P is None or prior.theta_cov is None:
             raise ValueError("prior: expected ObserverPrior(x, theta, P, theta_cov)")
+        F, _, H = model.matrices(0)
+        n, m, p = F.shape[-1], H.shape[-2], np.shape(prior.theta)[0]
         check_matrix("prior.P", prior.P, (n, n), spd=True)
         check_matrix("prior.theta_cov", prior.theta_cov, (p, p), spd=True)
         for name, value, want in (
@@ -393,12 +390,12 @@ class DiscreteAdaptiveObserver(eqx.Module):
         S = H @ state.P_pred @ H.T + self.R
         K = jnp.linalg.solve(S, H @ state.P_pred).T
         I_KH = jnp.eye(n, dtype=F.dtype) - K @ H
-        P = _symmetrize(I_KH @ state.P_pred)
+        P = symmetrize(I_KH @ state.P_pred)
         Omega = H @ state.Ups_pred
         St = state.theta_cov
         inner = self.forgetting * S + Omega @ St @ Omega.T
         gain = jnp.linalg.solve(inner, Omega @ St).T  # S_theta Omega^T Lambda
-        theta_cov = _symmetrize((St - gain @ Omega @ St) / self.forgetting)
+        theta_cov = symmetrize((St - gain @ Omega @ St) / self.forgetting)
         e = y - H @ state.x_pred
         theta = state.theta + gain @ e
         Ups = I_KH @ state.Ups_pred
@@ -409,7 +406,7 @@ class DiscreteAdaptiveObserver(eqx.Module):
         new = DiscreteState(
             k=state.k + 1,
             x_pred=F @ x + B @ u + Phi @ theta,
-            P_pred=_symmetrize(F @ P @ F.T + self.Q),
+            P_pred=symmetrize(F @ P @ F.T + self.Q),
             theta=theta,
             Ups_pred=F @ Ups + Phi,
             theta_cov=theta_cov,

@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from jaxest.linalg import symmetrize
 from jaxest.run import Status
 
 
@@ -58,7 +59,7 @@ def smallest_eigenvalue(W: Float[Array, "p p"]) -> Float[Array, ""]:
     if W.shape[0] == 2:
         mean, half_gap = 0.5 * (W[0, 0] + W[1, 1]), 0.5 * (W[0, 0] - W[1, 1])
         return mean - jnp.sqrt(half_gap**2 + W[0, 1] * W[1, 0])
-    return jnp.linalg.eigvalsh(0.5 * (W + W.T))[0]
+    return jnp.linalg.eigvalsh(symmetrize(W))[0]
 
 
 def excitation_level(buffer: ExcitationWindow) -> Float[Array, ""]:
@@ -66,8 +67,11 @@ def excitation_level(buffer: ExcitationWindow) -> Float[Array, ""]:
     return smallest_eigenvalue(jax.lax.stop_gradient(gramian(buffer)))
 
 
-def excitation_status(buffer: ExcitationWindow, threshold: float) -> Int[Array, ""]:
-    """``Status.NOT_EXCITED`` when the window is full and its level is below ``threshold``."""
+def excitation_status(
+    buffer: ExcitationWindow, level: Float[Array, ""], threshold: float
+) -> Int[Array, ""]:
+    """``Status.NOT_EXCITED`` when the window is full and its ``level``
+    (:func:`excitation_level` of ``buffer``) is below ``threshold``."""
     full = buffer.count >= buffer.increments.shape[0]
-    lost = full & (excitation_level(buffer) < threshold)
+    lost = full & (level < threshold)
     return jnp.where(lost, Status.NOT_EXCITED, Status.OK).astype(jnp.int32)

@@ -45,14 +45,15 @@ DESCRIPTION = "Zhang adaptive observer, Charlie and Boeing 747 (figs 2-5): hand 
 
 DT = 0.01
 SETTLING_BAND = 0.02
+#: persistent-excitation window (samples) of the evaluated observers, hand and tuned
+EXCITATION_WINDOW = 200
 
-#: per aircraft: horizon T (model time units) of the nominal runs, of the held-out Monte Carlo
-#: runs and of the tuning runs, reference amplitude per input and frequencies, measurement-noise
+#: per aircraft: horizon T (model time units) of the nominal and held-out Monte Carlo runs and
+#: tune_T of the tuning runs, reference amplitude per input and frequencies, measurement-noise
 #: standard deviation, initial-state spread
 CONFIG = {
     "charlie": dict(
         T=320.0,
-        mc_T=150.0,
         tune_T=40.0,
         amplitude=(3.0,),
         freqs=(0.5, 1.3, 2.9),
@@ -61,7 +62,6 @@ CONFIG = {
     ),
     "b747": dict(
         T=800.0,
-        mc_T=400.0,
         tune_T=40.0,
         amplitude=(1.0, 3.0),
         freqs=(0.3, 0.7, 1.7),
@@ -80,7 +80,12 @@ class Plant(eqx.Module):
 
 
 def make_plant(name: str, printed: bool = False) -> Plant:
-    ac = aircraft(name, printed)
+    """The plant of aircraft ``name`` (``printed``: the scan's 747 values)."""
+    return plant_from_aircraft(aircraft(name, printed))
+
+
+def plant_from_aircraft(ac: dict) -> Plant:
+    """The plant of an :func:`jaxest.systems.aircraft_linear.aircraft` description."""
     A, B, C = (jnp.asarray(ac[k]) for k in ("A", "B", "C"))
     n, l = B.shape
     model = ContinuousLTV(A, jnp.zeros_like(B), C, InputEffectiveness(B))
@@ -88,7 +93,7 @@ def make_plant(name: str, printed: bool = False) -> Plant:
     return Plant(model, Kbar, jnp.asarray(ac["theta"]))
 
 
-def hand_observer(plant: Plant, window: int = 200) -> AdaptiveObserver:
+def hand_observer(plant: Plant, window: int = EXCITATION_WINDOW) -> AdaptiveObserver:
     """M = I, Sigma = I, Q = I, R = I."""
     n, m, p = plant.model.A.shape[0], plant.model.C.shape[0], plant.theta.shape[0]
     return AdaptiveObserver(
@@ -210,7 +215,8 @@ def tune(plant: Plant, name: str, key, *, batch: int, steps: int):
         optax.chain(optax.clip_by_global_norm(1.0), optax.adam(0.1)), max_consecutive_errors=5
     )
     fitted = fit(start, loss, ("M", "Sigma", "Q", "R"), optimizer=optimizer, num_steps=steps)
-    return dataclasses.replace(fitted.model, excitation_window=200), np.asarray(fitted.losses)
+    tuned = dataclasses.replace(fitted.model, excitation_window=EXCITATION_WINDOW)
+    return tuned, np.asarray(fitted.losses)
 
 
 def stack_scenarios(*scenarios: Scenario) -> Scenario:
@@ -240,10 +246,7 @@ def fly_all(observer, plant, name, scenarios: Scenario, T: float):
 
 
 def _plot_errors(path: Path, name: str, runs: dict, plant: Plant, state_names) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxest.plot import plt, save
 
     labels = list(runs)
     p = plant.theta.shape[0]
@@ -262,16 +265,11 @@ def _plot_errors(path: Path, name: str, runs: dict, plant: Plant, state_names) -
             ax.set_ylabel(f"theta_{j + 1} error")
         axes[0, col].set_title(f"{name}: {label}")
         axes[-1, col].set_xlabel("t")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
 
 
 def _plot_states(path: Path, name: str, sim, label: str, state_names) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxest.plot import plt, save
 
     fig, axes = plt.subplots(len(state_names), 1, figsize=(7, 1.7 * len(state_names)), sharex=True)
     t = np.arange(sim.states.shape[0]) * DT
@@ -282,16 +280,11 @@ def _plot_states(path: Path, name: str, sim, label: str, state_names) -> None:
     axes[0].legend(loc="upper right")
     axes[0].set_title(f"{name}: states and estimates ({label})")
     axes[-1].set_xlabel("t")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
 
 
 def _plot_montecarlo(path: Path, name: str, settle: dict, history: list) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxest.plot import plt, save
 
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10, 3.5))
     for label, values in settle.items():
@@ -310,9 +303,7 @@ def _plot_montecarlo(path: Path, name: str, settle: dict, history: list) -> None
     ax2.set_xlabel("Adam step")
     ax2.set_ylabel("tuning loss")
     fig.suptitle(name)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
 
 
 def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict:
@@ -328,10 +319,9 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     rows = []
     with Progress("adaptive", total=6) as progress:
         for index, name in enumerate(("charlie", "b747")):
-            ac = aircraft(name, printed)
-            plant = make_plant(name, printed and name == "b747")
+            ac = aircraft(name, printed)  # printed only changes the 747
+            plant = plant_from_aircraft(ac)
             T = (20.0 if name == "charlie" else 40.0) if quick else CONFIG[name]["T"]
-            mc_T = T if quick else CONFIG[name]["mc_T"]
             train_key, test_key = jax.random.split(jax.random.fold_in(key, index))
             tuned, history = tune(plant, name, train_key, batch=tune_batch, steps=tune_steps)
             progress.advance(f"{name} tuned, loss {history[0]:.3g} -> {history[-1]:.3g}")
@@ -371,7 +361,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             mc["speedup_min"] = float(np.min(speedup))
             mc["speedup_median"] = float(np.median(speedup))
             mc["runs"] = runs
-            mc["horizon"] = mc_T
+            mc["horizon"] = T
             progress.advance(f"{name} Monte Carlo")
             result["held_out_montecarlo"] = mc
             result["tuned_matrices"] = {

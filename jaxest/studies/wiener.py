@@ -88,11 +88,12 @@ def monte_carlo(smoother: WienerSmoother, model, runs: int, key):
     def one(k):
         sim = simulate(model, prior, N + 1, k)
         ys = sim.y
-        optimal, final = smoother.optimal_start(ys, prior.mean)
+        steady = steady_state_smooth(model, ys, prior, smoother.gain)  # eq 15
+        optimal, final = smoother.start_from(steady)
         rts = rts_smooth(model, run_filter(KalmanFilter(), model, ys, init=prior))
         estimates = {
             "rts": rts.mean,
-            "steady_state": steady_state_smooth(model, ys, prior).mean,  # eq 15
+            "steady_state": steady.mean,
             "wiener_optimal": smoother.smooth(ys, optimal, final),
             "wiener_eq13": smoother.smooth(
                 ys, smoother.eq13_initial_values(arbitrary, optimal), final
@@ -111,10 +112,7 @@ def monte_carlo(smoother: WienerSmoother, model, runs: int, key):
 
 
 def _figures(directory: Path, states, paths, deltas, bounds, lam):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxest.plot import plt, save
 
     t = np.arange(states.shape[0])
     files = []
@@ -134,10 +132,8 @@ def _figures(directory: Path, states, paths, deltas, bounds, lam):
             ax.set_xlabel("t")
             ax.set_title(f"Fig. {fig_no}: x{i + 1}(t) and the fixed-interval Wiener smoother")
             ax.legend(fontsize=8)
-            fig.tight_layout()
             name = f"fig{fig_no}_x{i + 1}.png"
-            fig.savefig(directory / name, dpi=120)
-            plt.close(fig)
+            save(fig, directory / name, dpi=120)
             files.append(name)
     fig, ax = plt.subplots(figsize=(7, 3.6))
     horizon = 120
@@ -161,9 +157,7 @@ def _figures(directory: Path, states, paths, deltas, bounds, lam):
     ax.set_xlabel("t")
     ax.set_title(f"delta(t) = x(t|N) - x°(t|N); eigenvalues {lam[0]:.4f}, {lam[1]:.4f}")
     ax.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(directory / "delta.png", dpi=120)
-    plt.close(fig)
+    save(fig, directory / "delta.png", dpi=120)
     return [*files, "delta.png"]
 
 
