@@ -21,6 +21,7 @@ import scipy.integrate
 jax.config.update("jax_enable_x64", True)
 
 from jaxest.network import CommunicationStructure, NetworkFilter, steady_state  # noqa: E402
+from jaxest.network.structure import block_diag  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
 from jaxest.run import Gaussian, run  # noqa: E402
 from jaxest.systems.chain import initial_prior, mass_chain  # noqa: E402
@@ -109,7 +110,7 @@ def main():
         }
         if N <= args.numpy_max_N:
             rate = numpy_design_rate(system, np.asarray(structure.hears))
-            P0 = np.asarray(jax.scipy.linalg.block_diag(*cov0))
+            P0 = np.asarray(block_diag(cov0))
             start = time.perf_counter()
             sol = scipy.integrate.solve_ivp(
                 rate, (0.0, float(ss.settle_time)), P0.reshape(-1), rtol=1e-10, atol=1e-12

@@ -124,7 +124,8 @@ def main(argv=None):
         duffing.model(closed_form_bound=True),
         smf_fdi.first_prior(closed_form_bound=True),
     )
-    data = [smf_fdi.simulate_run(k, 0.0) for k in keys[: args.numpy_runs]]
+    # fault-free data, as single_filter_function runs on the jaxest side
+    data = [smf_fdi.simulate_run(k, None) for k in keys[: args.numpy_runs]]
     data = [np.asarray(ys) for _, ys in data]
     c0, P0 = np.asarray(prior.center), np.asarray(prior.shape)
     w_bar, v_bar = np.asarray(model.process_bound), np.asarray(model.measurement_bound)

@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxest.linalg import symmetrize
 from jaxest.network.structure import (
     CommunicationStructure,
     LargeScaleSystem,
@@ -119,15 +120,22 @@ def optimal_gain(system, constraint: GainConstraint, Hbar, P) -> Float[Array, "N
     return B + free @ phi
 
 
-def covariance_rate(system, Abar, Hbar, G, P) -> Float[Array, "Nn Nn"]:
-    """P' = Phi P + P Phi^T + F Q F^T + G R G^T (eqs 28 and 30 are its blocks)."""
-    Phi = from_blocks(Abar - jnp.einsum("iaq,ijqb->ijab", G, Hbar))
+def closed_loop_matrix(Abar, Hbar, G) -> Float[Array, "Nn Nn"]:
+    """Phi of e' = Phi e + F w - G v (eq 37): Phi_ij = Abar_ij - G_i Hbar_ij."""
+    return from_blocks(Abar - jnp.einsum("iaq,ijqb->ijab", G, Hbar))
+
+
+def noise_rate(system, G) -> Float[Array, "Nn Nn"]:
+    """blkdiag(F_i Q_i F_i^T + G_i R_i G_i^T), the noise term of P'."""
     FQF = jnp.einsum("iap,ipq,ibq->iab", system.F, system.Q, system.F)
     GRG = jnp.einsum("iaq,iqr,ibr->iab", G, system.R, G)
-    N, n = G.shape[:2]
-    noise = jnp.einsum("ij,iab->iajb", jnp.eye(N, dtype=P.dtype), FQF + GRG).reshape(N * n, N * n)
-    PhiP = Phi @ P
-    return PhiP + PhiP.T + noise
+    return block_diag(FQF + GRG)
+
+
+def covariance_rate(system, Abar, Hbar, G, P) -> Float[Array, "Nn Nn"]:
+    """P' = Phi P + P Phi^T + F Q F^T + G R G^T (eqs 28 and 30 are its blocks)."""
+    PhiP = closed_loop_matrix(Abar, Hbar, G) @ P
+    return PhiP + PhiP.T + noise_rate(system, G)
 
 
 def node_costs(P, S) -> Float[Array, " N"]:
@@ -170,8 +178,7 @@ def _vector_field(t, P, pieces: _Pieces):
     """Right-hand side of eqs 28-31 with the gains of step 4 (``args`` of diffrax = pieces)."""
     sys, cons, Abar, Hbar = pieces.at(t)
     G = optimal_gain(sys, cons, Hbar, P)
-    dP = covariance_rate(sys, Abar, Hbar, G, P)
-    return 0.5 * (dP + dP.T)
+    return symmetrize(covariance_rate(sys, Abar, Hbar, G, P))
 
 
 def _design_field(t, P, args):
@@ -318,9 +325,10 @@ def _steady_state(system, structure, cov0, S, horizon, max_steps):
 
 
 @eqx.filter_jit
-def instantaneous_cost(system, structure, P, free, S, node: int):
+def instantaneous_cost(system, structure, P, free, S, node):
     """tr(S_i [P']_ii) as a function of node i's free gain part G~_i (n, q) (lemma 4, eq 44), at
-    the joint covariance P, the other nodes keeping their optimal gains. Used to check step 4: its
+    the joint covariance P, the other nodes keeping their optimal gains. ``node`` may be an int or
+    an integer array (traced: one compilation serves every node). Used to check step 4: its
     gradient vanishes at the designed gain."""
     constraint = gain_constraint(system, structure)
     Abar, Hbar = closed_loop_blocks(system, structure)
@@ -331,8 +339,9 @@ def instantaneous_cost(system, structure, P, free, S, node: int):
 
 
 @eqx.filter_jit
-def optimal_free_gain(system, structure, P, node: int):
-    """The free part G~_i of step 4 at P (zero columns outside the null space of phi_i)."""
+def optimal_free_gain(system, structure, P, node):
+    """The free part G~_i of step 4 at P (zero columns outside the null space of phi_i); ``node``
+    an int or an integer array."""
     constraint = gain_constraint(system, structure)
     _, Hbar = closed_loop_blocks(system, structure)
     G = optimal_gain(system, constraint, Hbar, P)[node]

@@ -42,6 +42,11 @@ def node_rate(A, C, H1, H2, G, mean, coupling, y) -> Array:
     )
 
 
+def gain_at(gains: Float[Array, "*T N n q"], k) -> Float[Array, "N n q"]:
+    """The gains used on [t_k, t_k + dt]: ``gains[k]`` of time-varying (T, N, n, q) gains."""
+    return gains[k] if gains.ndim == 4 else gains
+
+
 class NetworkState(eqx.Module):
     step: Int[Array, ""]  #: k, the sample index (t_k = t0 + k dt)
     mean: Float[Array, "N n"]  #: x^_i(t_k) of every node
@@ -66,7 +71,7 @@ class NetworkFilter(eqx.Module):
     t0: float = eqx.field(static=True, default=0.0)
 
     def gain(self, k):
-        return self.gains[k] if self.gains.ndim == 4 else self.gains
+        return gain_at(self.gains, k)
 
     def init(self, model: LargeScaleSystem, prior: Gaussian) -> NetworkState:
         """x^_i(t0) = m_i(0) (eq 10); ``prior.mean`` has shape (N, n)."""
@@ -143,8 +148,7 @@ def run_sharded(
                 other = jax.lax.ppermute(mean, "node", perm=[(j, (j - d) % N) for j in range(N)])
                 j = (i + d) % N
                 coupling = coupling + hears_k[j].astype(mean.dtype) * (L_k[j] @ other[0])
-            G = gains[k] if gains.ndim == 4 else gains
-            rate = node_rate(A_k, C_k, H1_k, H2_k, G, mean, coupling[None], y)
+            rate = node_rate(A_k, C_k, H1_k, H2_k, gain_at(gains, k), mean, coupling[None], y)
             new = mean + dt * rate
             return (k + 1, new), (mean, check_finite_status(new)[None])
 

@@ -88,9 +88,9 @@ class LargeScaleSystem(eqx.Module):
                     f"{name}: time axis of length {value.shape[0]}, "
                     f"but {len(self.switch_times)} switch_times"
                 )
-        if not isinstance(self.Q, jax.core.Tracer):
-            check_matrix("Q", self.Q, psd=True, ndim=3)
-            check_matrix("R", self.R, spd=True, ndim=3)
+        # values are checked when concrete; under jit/vmap check_matrix checks shapes only
+        check_matrix("Q", self.Q, psd=True, ndim=3)
+        check_matrix("R", self.R, spd=True, ndim=3)
 
     @property
     def num_nodes(self) -> int:
@@ -115,18 +115,13 @@ class LargeScaleSystem(eqx.Module):
 
         A = blkdiag(A_i) + blkdiag(C_i) L, H = blkdiag(H_i1) + blkdiag(H_i2) L (constant system).
         """
-        N, n = self.num_nodes, self.state_dim
-        eye = jnp.eye(N, dtype=self.A.dtype)
-        A = jnp.einsum("ij,iab->iajb", eye, self.A) + jnp.einsum("iac,ijcb->iajb", self.C, self.L)
-        H = jnp.einsum("ij,iab->iajb", eye, self.H1) + jnp.einsum("iac,ijcb->iajb", self.H2, self.L)
-        FQF = jnp.einsum("iap,ipq,ibq->iab", self.F, self.Q, self.F)
-        q = self.obs_dim
-        return (
-            A.reshape(N * n, N * n),
-            H.reshape(N * q, N * n),
-            block_diag(FQF),
-            block_diag(self.R),
+        N, n, q = self.num_nodes, self.state_dim, self.obs_dim
+        A = block_diag(self.A) + jnp.einsum("iac,ijcb->iajb", self.C, self.L).reshape(N * n, N * n)
+        H = block_diag(self.H1) + jnp.einsum("iac,ijcb->iajb", self.H2, self.L).reshape(
+            N * q, N * n
         )
+        FQF = jnp.einsum("iap,ipq,ibq->iab", self.F, self.Q, self.F)
+        return A, H, block_diag(FQF), block_diag(self.R)
 
 
 def block_diag(blocks: Float[Array, "N a b"]) -> Float[Array, "Na Nb"]:

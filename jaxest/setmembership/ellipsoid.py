@@ -14,6 +14,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from jaxest.linalg import symmetrize
+
 
 class Ellipsoid(eqx.Module):
     """E(center, shape) = {x : (x - center)^T shape^{-1} (x - center) <= 1}; shape is SPD."""
@@ -41,7 +43,7 @@ def add_segment(shape: Float[Array, "n n"], direction: Float[Array, " n"]) -> Fl
     a_ = _safe(nonzero, a)
     p = 2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_))
     grown = (1 + p) * shape + (1 + 1 / p) * jnp.outer(direction, direction)
-    return jnp.where(nonzero, _symmetrize(grown), shape)
+    return jnp.where(nonzero, symmetrize(grown), shape)
 
 
 def add_box(shape: Float[Array, "n n"], half_widths: Float[Array, " n"]) -> Float[Array, "n n"]:
@@ -107,7 +109,7 @@ def intersect_strip(
         )
     return (
         jnp.where(update, new_center, center),
-        jnp.where(update, _symmetrize(new_shape), shape),
+        jnp.where(update, symmetrize(new_shape), shape),
         empty,
     )
 
@@ -118,11 +120,6 @@ def contains(
     """Whether x lies in E(center, shape)."""
     dx = x - center
     return dx @ spd_solve(shape, dx) <= 1.0
-
-
-def log_volume_ratio(shape: Float[Array, "n n"]) -> Float[Array, ""]:
-    """log det(shape) = 2 log(volume / volume of the unit ball)."""
-    return jnp.linalg.slogdet(shape)[1]
 
 
 def spd_solve(matrix: Float[Array, "n n"], vector: Float[Array, " n"]) -> Float[Array, " n"]:
@@ -147,7 +144,3 @@ def is_positive_definite(matrix: Float[Array, "n n"]) -> Bool[Array, ""]:
     if n == 2:
         return (matrix[0, 0] > 0) & (matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0] > 0)
     return jnp.all(jnp.isfinite(jnp.linalg.cholesky(matrix)))
-
-
-def _symmetrize(matrix):
-    return 0.5 * (matrix + matrix.T)

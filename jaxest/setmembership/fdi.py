@@ -46,16 +46,15 @@ def bank_masks(m: int, method: int) -> np.ndarray:
     raise ValueError(f"method: expected 1 or 2, got {method}")
 
 
-def isolation_decisions(inconsistent: Bool[Array, "m T"], method: int) -> Bool[Array, "T m"]:
-    """decisions[k, i]: sensor i is declared faulty at step k, from the bank's per-filter
-    inconsistency flags (filter i of the bank of ``method``)."""
-    flags = jnp.asarray(inconsistent).T  # (T, m)
+def isolation_decisions(inconsistent: Bool[Array, "*B m T"], method: int) -> Bool[Array, "*B T m"]:
+    """decisions[..., k, i]: sensor i is declared faulty at step k, from the bank's per-filter
+    inconsistency flags (filter i of the bank of ``method``); leading axes (runs...) broadcast."""
+    flags = jnp.swapaxes(jnp.asarray(inconsistent), -1, -2)  # (..., T, m)
     if method == 1:
         return flags
     if method == 2:
-        m = flags.shape[-1]
-        others = jnp.array([[j != i for j in range(m)] for i in range(m)])  # (m, m)
-        all_others_empty = jnp.all(jnp.where(others[None], flags[:, None, :], True), axis=-1)
+        others = jnp.asarray(bank_masks(flags.shape[-1], 2))  # (m, m): j != i
+        all_others_empty = jnp.all(jnp.where(others, flags[..., None, :], True), axis=-1)
         return ~flags & all_others_empty
     raise ValueError(f"method: expected 1 or 2, got {method}")
 

@@ -102,13 +102,6 @@ def _widen(lo, hi, roundings) -> Interval:
     return Interval(_down(lo - k * jnp.abs(lo)), _up(hi + k * jnp.abs(hi)))
 
 
-def _hull(*intervals: Interval) -> Interval:
-    return Interval(
-        jnp.min(jnp.stack([i.lo for i in intervals]), axis=0),
-        jnp.max(jnp.stack([i.hi for i in intervals]), axis=0),
-    )
-
-
 def _both(prim, x: Interval, **params) -> Interval:
     """Apply an order-preserving structural primitive (reshape, slice...) to both endpoints."""
     return Interval(prim.bind(x.lo, **params), prim.bind(x.hi, **params))

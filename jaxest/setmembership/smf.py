@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxest.run import Status, run
+from jaxest.run import Status, check_finite_status, run
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
@@ -73,7 +73,7 @@ class BoundedNoiseModel(eqx.Module):
 
     def linearise(self, fn, custom_bound, center, shape, u):
         """``(fn(c), d fn/dx (c), remainder half-widths over E(c, P))``."""
-        g = (lambda x: fn(x, u)) if u is not None else (lambda x: fn(x, None))
+        g = lambda x: fn(x, u)
         value, jac = g(center), jax.jacfwd(g)(center)
         if custom_bound is not None:
             bound = custom_bound(center, shape, u)
@@ -195,7 +195,7 @@ class SetMembershipFilter(eqx.Module):
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)
             | jnp.where(state.unbounded, Status.UNBOUNDED, 0)
-            | jnp.where(jnp.all(jnp.isfinite(c)), 0, Status.NONFINITE)
+            | check_finite_status(c)
         ).astype(jnp.int32)
         output = SMFOutput(
             center=c,

@@ -24,9 +24,9 @@ from jaxest.network import CommunicationStructure, NetworkFilter, design, steady
 from jaxest.network.design import (
     centralized_steady_state,
     closed_loop_blocks,
-    covariance_rate,
-    from_blocks,
+    closed_loop_matrix,
     instantaneous_cost,
+    noise_rate,
     optimal_free_gain,
 )
 from jaxest.network.structure import block_diag, draw_initial_state, simulate_step
@@ -95,10 +95,8 @@ def discrete_expected_cost(system, structure, gains, cov0, dt):
     Abar, Hbar = closed_loop_blocks(system, structure)
 
     def body(P, G):
-        Phi = from_blocks(Abar - jnp.einsum("iaq,ijqb->ijab", G, Hbar))
-        W = covariance_rate(system, Abar, Hbar, G, jnp.zeros_like(P))
-        M = jnp.eye(P.shape[0], dtype=P.dtype) + dt * Phi
-        return M @ P @ M.T + dt * W, jnp.trace(P)
+        M = jnp.eye(P.shape[0], dtype=P.dtype) + dt * closed_loop_matrix(Abar, Hbar, G)
+        return M @ P @ M.T + dt * noise_rate(system, G), jnp.trace(P)
 
     return jax.lax.scan(body, block_diag(cov0), gains)[1]
 
@@ -113,12 +111,13 @@ def step4_gradient(system, structure, P) -> float:
     """max_i |d tr(P_i')/d G~_i| at the designed gain, relative to the same at G~_i = 0."""
     worst = 0.0
     for i in range(system.num_nodes):
-        free = optimal_free_gain(system, structure, P, i)
+        node = jnp.asarray(i, jnp.int32)  # traced, not static: one compilation for every node
+        free = optimal_free_gain(system, structure, P, node)
         scale = float(
-            jnp.linalg.norm(_cost_gradient(system, structure, P, jnp.zeros_like(free), i))
+            jnp.linalg.norm(_cost_gradient(system, structure, P, jnp.zeros_like(free), node))
         )
         if scale > 0:
-            grad = _cost_gradient(system, structure, P, free, i)
+            grad = _cost_gradient(system, structure, P, free, node)
             worst = max(worst, float(jnp.linalg.norm(grad)) / scale)
     return worst
 
@@ -175,10 +174,7 @@ def scaling(sizes, steps, dt, progress):
 
 
 def _figures(out: Path, names, results, J_central, t_grid, J_t, mc_t, scale_rows):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxest.plot import plt, save
 
     fig, ax = plt.subplots(figsize=(6, 4))
     links = [results[n]["links"] for n in names]
@@ -196,9 +192,7 @@ def _figures(out: Path, names, results, J_central, t_grid, J_t, mc_t, scale_rows
     ax.axhline(J_central, color="k", ls="--", label="centralized Kalman-Bucy")
     ax.set(xlabel="communication links", ylabel="steady-state J = sum tr(P_i)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "cost_vs_links.png", dpi=120)
-    plt.close(fig)
+    save(fig, out / "cost_vs_links.png", dpi=120)
 
     fig, ax = plt.subplots(figsize=(6, 4))
     for n in names:
@@ -211,9 +205,7 @@ def _figures(out: Path, names, results, J_central, t_grid, J_t, mc_t, scale_rows
         title="designed J(t) (lines) and Monte Carlo (dots)",
     )
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(out / "cost_transient.png", dpi=120)
-    plt.close(fig)
+    save(fig, out / "cost_transient.png", dpi=120)
 
     fig, ax = plt.subplots(figsize=(6, 4))
     Ns = [r["N"] for r in scale_rows]
@@ -226,9 +218,7 @@ def _figures(out: Path, names, results, J_central, t_grid, J_t, mc_t, scale_rows
     )
     ax.set(xlabel="number of masses N", ylabel="seconds (after compilation)")
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(out / "scaling.png", dpi=120)
-    plt.close(fig)
+    save(fig, out / "scaling.png", dpi=120)
 
 
 def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict:

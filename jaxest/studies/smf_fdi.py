@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxest.filters import EKF
+from jaxest.filters.common import covariance_predict
 from jaxest.models import NonlinearGaussian
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
@@ -88,8 +89,7 @@ def ekf_model(rule: str) -> NonlinearGaussian:
 def ekf_prior(model: NonlinearGaussian) -> Gaussian:
     """N(x0_hat, 0.01 I) at k = 0 predicted to the first measurement."""
     x0 = jnp.asarray(duffing.X0)
-    mean, F, G, Q = model.transition(x0, None, 0)
-    return Gaussian(mean, F @ (duffing.P0_SCALE * jnp.eye(2)) @ F.T + G @ Q @ G.T)
+    return Gaussian(*covariance_predict(model, x0, duffing.P0_SCALE * jnp.eye(2), None, 0))
 
 
 def _one_run(key, biases, closed_form_bound=False):
@@ -157,9 +157,7 @@ def summarise(inconsistent, contains, unbounded, ekf_alarms) -> dict:
     for s, L in enumerate(LEVELS, start=1):
         out["detection"][str(L)] = fdi.score(inconsistent[:, s, 0], start)
         for method, bank in ((1, bank1), (2, bank2)):
-            decisions = np.stack(
-                [np.asarray(fdi.isolation_decisions(b, method)) for b in bank[:, s]]
-            )
+            decisions = np.asarray(fdi.isolation_decisions(bank[:, s], method))  # (runs, T, m)
             out[f"isolation_method{method}"][str(L)] = fdi.score(
                 decisions[..., 0], start, wrong=decisions[..., 1]
             )
@@ -340,10 +338,7 @@ def _tables(directory: Path, summary: dict) -> None:
 
 
 def _figures(directory: Path, states, result, post) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from jaxest.plot import plt, save
 
     k = np.arange(1, states.shape[0] + 1)
     for name, centre, half in (
@@ -363,14 +358,10 @@ def _figures(directory: Path, states, result, post) -> None:
         axes[0].legend()
         axes[0].set_title("SMF state bounds" if "smf" in name else "EKF 3-sigma bounds")
         axes[-1].set_xlabel("k")
-        fig.tight_layout()
-        fig.savefig(directory / name, dpi=100)
-        plt.close(fig)
+        save(fig, directory / name, dpi=100)
     fig, ax = plt.subplots(figsize=(7, 3.5))
     ax.plot(k, result.remainder[:, 1], "b-")
     ax.set_xlabel("k")
     ax.set_ylabel("alpha_2 (remainder bound)")
     ax.set_title("Upper bound of the linearisation remainder of f_2")
-    fig.tight_layout()
-    fig.savefig(directory / "fig3_remainder_bound.png", dpi=100)
-    plt.close(fig)
+    save(fig, directory / "fig3_remainder_bound.png", dpi=100)
