@@ -29,7 +29,7 @@ from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.systems import tracking
 from jaxest.systems.ill_conditioned import posterior_error
-from jaxest.tune import fit, neg_loglik, supervised_mse, to_unconstrained
+from jaxest.tune import fit, from_unconstrained, neg_loglik, supervised_mse, to_unconstrained
 
 DESCRIPTION = "core filters: ill-conditioned robustness of every filter; tuning Q, R by gradient"
 FILTERS = {
@@ -71,10 +71,12 @@ def standard_errors(model, ys, prior) -> np.ndarray:
     """Standard errors of the log-variances (Q then R diagonals) from the observed Fisher
     information of the total log-likelihood of the batch ``ys``."""
 
+    q = model.Q.shape[0]
+    mean_nll = neg_loglik(KalmanFilter(), ys, prior)  # per run and step
+
     def total_nll(theta):
-        q, r = theta[:4], theta[4:]
-        mdl = je.LinearGaussian(model.F, model.H, jnp.diag(jnp.exp(q)), jnp.diag(jnp.exp(r)))
-        return -jnp.sum(jax.vmap(lambda y: je.run(KalmanFilter(), mdl, y, None, prior).loglik)(ys))
+        Q, R = (from_unconstrained(t, "log_diagonal") for t in (theta[:q], theta[q:]))
+        return mean_nll(je.LinearGaussian(model.F, model.H, Q, R)) * ys.shape[0] * ys.shape[1]
 
     hessian = jax.jit(jax.hessian(total_nll))(_log_params(model))
     return np.sqrt(np.diag(np.linalg.inv(np.asarray(hessian))))

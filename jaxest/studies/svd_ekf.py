@@ -23,22 +23,19 @@ from pathlib import Path
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import matplotlib
 import numpy as np
 import optax
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF  # noqa: E402
-from jaxest.progress import Progress  # noqa: E402
-from jaxest.report import markdown_table, write_json  # noqa: E402
-from jaxest.run import Gaussian, Status  # noqa: E402
-from jaxest.run import run as run_filter  # noqa: E402
-from jaxest.systems import flight, flight_data  # noqa: E402
-from jaxest.systems import flight_sim as sim  # noqa: E402
-from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS  # noqa: E402
-from jaxest.tune import fit  # noqa: E402
+from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF
+from jaxest.plot import plt, save
+from jaxest.progress import Progress
+from jaxest.report import markdown_table, write_json
+from jaxest.run import Gaussian, Status
+from jaxest.run import run as run_filter
+from jaxest.systems import flight, flight_data
+from jaxest.systems import flight_sim as sim
+from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
+from jaxest.tune import fit
 
 NAME = "svd-ekf"
 DESCRIPTION = "SVD-EKF flight state & sensor-parameter estimation (simulated + ATTAS/HFB-320 data)"
@@ -114,10 +111,6 @@ def model_for(rate_hz, dtype, noise_scale=1.0, lever_arms=sim.LEVER_ARMS, output
         jnp.asarray(output_std * noise_scale, dtype),
         lever_arms,
     )
-
-
-#: one compiled single-run filter, shared by the figures and the real-data runs
-filter_once = eqx.filter_jit(run_filter)
 
 
 def run_metrics(estimator, model, ys, inputs, mean0, P0, truth, settle: int):
@@ -207,16 +200,14 @@ def plot_states_and_fits(path, t, truth, estimate, measured, computed, title):
     axes[0, 0].legend(fontsize=8)
     axes[1, 0].legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
 
 
 def single_run_figure(path, truth_flight, rate_hz, key, title):
     batch = simulated_batch(truth_flight, 1, key, jnp.float64)
     ys, inputs, mean0, truth = (a[0] for a in batch)
     model = model_for(rate_hz, jnp.float64)
-    result = filter_once(SVDEKF(), model, ys, inputs, Gaussian(mean0, prior_cov(jnp.float64)))
+    result = run_filter(SVDEKF(), model, ys, inputs, Gaussian(mean0, prior_cov(jnp.float64)))
     computed = jax.vmap(model.h)(result.mean, inputs)
     plot_states_and_fits(path, np.asarray(truth_flight.t), np.asarray(truth), np.asarray(result.mean),
                          np.asarray(ys), np.asarray(computed), title)  # fmt: skip
@@ -247,7 +238,7 @@ def reconstruct(data, input_std, output_std, estimator=None):
     inputs = flight.interval_inputs(jnp.asarray(data.inputs))
     est = SVDEKF() if estimator is None else estimator
     prior = real_prior(data)
-    result = filter_once(est, model, jnp.asarray(data.outputs), inputs, prior)
+    result = run_filter(est, model, jnp.asarray(data.outputs), inputs, prior)
     return result, model, inputs
 
 
@@ -306,13 +297,18 @@ def estimate_delays(records, input_std, output_std):
         raise ValueError(f"records: expected one sample interval, got {intervals}")
     grid = delay_grid(intervals[0])
     delays = np.zeros(len(OUTPUTS))
-    profiles = {}
+    profiles, computed = {}, {}  # computed: profiles by (channel, the other channels' delays)
     for _ in range(DELAY_SWEEPS):
         for channel in DELAYED_OUTPUTS:
-            curves = {m: delay_profile(d, channel, delays, input_std, output_std)
-                      for m, d in records.items()}  # fmt: skip
+            others = delays.copy()
+            others[OUTPUTS.index(channel)] = 0.0
+            if (channel, tuple(others)) not in computed:
+                computed[channel, tuple(others)] = {
+                    m: delay_profile(d, channel, others, input_std, output_std)
+                    for m, d in records.items()
+                }
+            curves = profiles[channel] = computed[channel, tuple(others)]
             delays[OUTPUTS.index(channel)] = grid[np.argmax(sum(curves.values()))]
-            profiles[channel] = curves
     best = {c: {m: float(grid[np.argmax(v)]) for m, v in curves.items()}
             for c, curves in profiles.items()}  # fmt: skip
     return delays, profiles, best
@@ -329,9 +325,7 @@ def plot_delay_profiles(path, profiles, delays, grid):
         ax.set_ylabel("log-likelihood - max")
         ax.legend(fontsize=8)
     fig.suptitle("Flow-vane delays on the ATTAS maneuvers (SVD-EKF likelihood profiles)")
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
+    save(fig, path, dpi=90)
 
 
 def residual_rms(data, result, model, inputs, settle):
@@ -399,13 +393,13 @@ def tune_noise(
     )
     params = {"Qc": "log_diagonal", "R": "log_diagonal"} if tune_r else {"Qc": "log_diagonal"}
     fitted = fit(start, loss, params, optimizer=optax.lbfgs(), num_steps=steps)
-    losses = np.append(np.asarray(fitted.losses), float(jax.jit(loss)(fitted.model)))
+    losses = np.append(np.asarray(fitted.losses), float(loss(fitted.model)))
     std = lambda cov: np.sqrt(np.diagonal(np.asarray(cov)))
     return std(fitted.model.Qc), std(fitted.model.R), list(-losses * n_obs)
 
 
 def noise_dict(input_std, output_std):
-    units_in = [1, 1, 1, 1 / DEG, 1 / DEG, 1 / DEG]
+    units_in = PARAMETER_UNITS[: flight.N_IN]  # the input biases' units
     d = {f"{n}": float(s * u) for n, s, u in zip(flight.INPUTS, input_std, units_in, strict=True)}
     d.update(
         {f"{n}": float(s * u) for n, s, u in zip(OUTPUTS, output_std, OUTPUT_UNITS, strict=True)}
@@ -461,13 +455,10 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             entry.update({f: summarise(m, common) for f, m in metrics.items()})
             summary["conditions"][name] = entry
             if dtype_name == "float64" and rate == max(r for _, r, _ in conditions):
+                ratios = observability(metrics["svd_ekf"])
                 summary["observability"][maneuver] = {
-                    "std_ratio": observability(metrics["svd_ekf"]),
-                    "observable": [
-                        p
-                        for p, r in observability(metrics["svd_ekf"]).items()
-                        if r < OBSERVABLE_RATIO
-                    ],  # fmt: skip
+                    "std_ratio": ratios,
+                    "observable": [p for p, r in ratios.items() if r < OBSERVABLE_RATIO],
                 }
             for f in FILTERS:
                 F = entry[f]
@@ -482,9 +473,14 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
                               f"SVD-EKF, simulated {maneuver} maneuver, {rate} Hz")  # fmt: skip
             progress.advance(f"figure {fig}")
         # compiling the likelihood gradient is the slowest piece: --quick leaves tuning out
-        summary["tuning"] = (
-            {} if quick else {"simulated": tune_simulated(key, duration, tune_steps)}
-        )
+        if quick:
+            summary["tuning"] = {}
+        else:
+            if ("elevator", 32) not in truths:
+                truths["elevator", 32] = sim.true_flight("elevator", 32, duration)
+            summary["tuning"] = {
+                "simulated": tune_simulated(key, truths["elevator", 32], tune_steps)
+            }
         if data_dir is not None:
             summary["real_data"] = real_data_part(out, data_dir, quick, tune_steps, progress)
             summary["tuning"]["real"] = summary["real_data"].pop("tuning")
@@ -495,11 +491,10 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     return summary
 
 
-def tune_simulated(key, duration, steps):
-    """ML tuning on one simulated elevator flight whose true noise is twice the nominal level,
+def tune_simulated(key, truth: sim.TrueFlight, steps):
+    """ML tuning on one simulated flight (``truth``) whose true noise is twice the nominal level,
     starting from the nominal level: the tuned values should move towards the truth."""
-    rate = 32
-    truth = sim.true_flight("elevator", rate, duration)
+    rate = truth.rate_hz
     ys, inputs, mean0, _ = (a[0] for a in simulated_batch(truth, 1, jax.random.fold_in(key, 7),
                                                           jnp.float64, noise_scale=2.0))  # fmt: skip
     prior = Gaussian(mean0, prior_cov(jnp.float64))
@@ -587,10 +582,9 @@ def real_data_part(out, data_dir, quick, tune_steps, progress):  # noqa: C901
 def reconstruct_hfb320(out, data_dir):
     """The HFB-320 record (10 Hz, no altitude channel) with the nominal noise levels."""
     hfb = flight_data.load_hfb320(data_dir)
-    hfb_std = np.concatenate([sim.OUTPUT_STD[:5], [1.0]])
-    delays, _, _ = estimate_delays({"hfb320": hfb}, sim.INPUT_STD, hfb_std)
+    delays, _, _ = estimate_delays({"hfb320": hfb}, sim.INPUT_STD, REAL_OUTPUT_STD)
     hfb = aligned(hfb, delays)
-    result, model, inputs = reconstruct(hfb, sim.INPUT_STD, hfb_std)
+    result, model, inputs = reconstruct(hfb, sim.INPUT_STD, REAL_OUTPUT_STD)
     innov, filt, computed = residual_rms(hfb, result, model, inputs, int(SETTLE_S * hfb.rate_hz))
     plot_states_and_fits(out / "fig_hfb320.png", hfb.t, None, np.asarray(result.mean), hfb.outputs,
                          computed, "SVD-EKF on HFB-320 elevator record (10 Hz)")  # fmt: skip

@@ -89,6 +89,15 @@ def find_data_dir(path: str | Path | None = None) -> Path | None:
     return DEFAULT_DATA_DIR if DEFAULT_DATA_DIR.is_dir() else None
 
 
+def _required_dir(data_dir) -> Path:
+    directory = find_data_dir(data_dir)
+    if directory is None:
+        raise ValueError(
+            f"data: no directory given and none at {DEFAULT_DATA_DIR}. {DOWNLOAD_HINT}"
+        )
+    return directory
+
+
 def _read(path: Path, columns: int) -> np.ndarray:
     if not path.is_file():
         raise ValueError(f"data: {path} not found. {DOWNLOAD_HINT}")
@@ -110,13 +119,8 @@ def _channels(table, spec):
 
 def load_attas(maneuver: str, data_dir: str | Path | None = None) -> FlightData:
     """An ATTAS maneuver (``elevator``, ``aileron`` or ``rudder``, or a file name) at 25 Hz."""
-    directory = find_data_dir(data_dir)
-    if directory is None:
-        raise ValueError(
-            f"data: no directory given and none at {DEFAULT_DATA_DIR}. {DOWNLOAD_HINT}"
-        )
     name = ATTAS_FILES.get(maneuver, maneuver)
-    table = _read(directory / name, 45)
+    table = _read(_required_dir(data_dir) / name, 45)
     return FlightData(
         name=f"ATTAS {maneuver}",
         t=table[:, 0] - table[0, 0],
@@ -127,12 +131,7 @@ def load_attas(maneuver: str, data_dir: str | Path | None = None) -> FlightData:
 
 def load_hfb320(data_dir: str | Path | None = None) -> FlightData:
     """The HFB-320 elevator 3-2-1-1 + pulse record at 10 Hz (no altitude: h is NaN)."""
-    directory = find_data_dir(data_dir)
-    if directory is None:
-        raise ValueError(
-            f"data: no directory given and none at {DEFAULT_DATA_DIR}. {DOWNLOAD_HINT}"
-        )
-    table = _read(directory / HFB320_FILE, 20)
+    table = _read(_required_dir(data_dir) / HFB320_FILE, 20)
     return FlightData(
         name="HFB-320 elevator",
         t=table[:, 0] - table[0, 0],
