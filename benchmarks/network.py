@@ -121,7 +121,7 @@ def main():
             row["J_relative_difference"] = abs(row["J_scipy"] - row["J"]) / row["J"]
         ys = jax.random.normal(jax.random.key(0), (args.steps, N, system.obs_dim))
         filt = NetworkFilter(structure, ss.gains, dt)
-        runner = jax.jit(lambda ys: run(filt, system, ys, None, Gaussian(mean0, cov0)).mean)
+        runner = jax.jit(lambda ys: run(filt, system, ys, prior=Gaussian(mean0, cov0)).mean)
         means, run_s = timed(lambda: runner(ys))
         row["jaxest_run_s"] = run_s
         # NumPy loop of the same eq 9 step (innovation form), for speed and agreement

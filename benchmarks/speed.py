@@ -41,7 +41,7 @@ def linear_problem():
 
     def jaxest_loglik(q_scale, ys):
         mdl = je.LinearGaussian(model.F, model.H, q_scale * model.Q, model.R)
-        res = je.run(KalmanFilter(), mdl, ys, None, prior)
+        res = je.run(KalmanFilter(), mdl, ys, prior=prior)
         return res.loglik, res.mean
 
     from dynamax.linear_gaussian_ssm import LinearGaussianSSM, lgssm_filter
@@ -70,7 +70,7 @@ def duffing_problem():
 
     def jaxest_loglik(q_scale, ys):
         mdl = je.NonlinearGaussian(f, h, q_scale * Q, R)
-        res = je.run(KalmanFilter(), mdl, ys, None, prior)
+        res = je.run(KalmanFilter(), mdl, ys, prior=prior)
         return res.loglik, res.mean
 
     from dynamax.nonlinear_gaussian_ssm import ParamsNLGSSM, extended_kalman_filter

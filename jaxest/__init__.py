@@ -1,53 +1,62 @@
 """jaxest: differentiable state estimation in JAX.
 
 Every filter, smoother and observer is an equinox Module with a pure ``init``/``step`` pair that
-``jit``s, ``vmap``s and differentiates; see :mod:`jaxest.run` for the protocol.
+``jit``s, ``vmap``s and differentiates (:mod:`jaxest.estimator` has the protocol); one driver,
+:func:`run`, runs any of them over a sequence.
 """
 
-from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF, InformationFilter, KalmanFilter, SquareRootKF
-from jaxest.models import LinearGaussian, NonlinearGaussian, Simulation, simulate
-from jaxest.montecarlo import monte_carlo
-from jaxest.riccati import lqr_gain, solve_care, solve_dare
-from jaxest.run import FilterResult, Gaussian, Status, filter, run
-from jaxest.smoothers import SmootherResult, rts_smooth
-from jaxest.smoothers.steady_state import (
-    SteadyStateKalmanFilter,
-    arma_innovation_model,
-    steady_state_gain,
-    steady_state_smooth,
-)
-from jaxest.smoothers.wiener import WienerSmoother, wiener_smooth
-from jaxest.tune import fit, neg_loglik, supervised_mse
+import warnings as _warnings
 
-__all__ = [
-    "EKF",
-    "SVDEKF",
-    "FilterResult",
-    "Gaussian",
-    "ImprovedSVDKF",
-    "InformationFilter",
-    "KalmanFilter",
-    "LinearGaussian",
-    "NonlinearGaussian",
-    "Simulation",
-    "SmootherResult",
-    "SquareRootKF",
-    "Status",
-    "SteadyStateKalmanFilter",
-    "WienerSmoother",
-    "arma_innovation_model",
-    "filter",
-    "fit",
-    "lqr_gain",
-    "monte_carlo",
-    "neg_loglik",
-    "rts_smooth",
-    "run",
-    "simulate",
-    "solve_care",
-    "solve_dare",
-    "steady_state_gain",
-    "steady_state_smooth",
-    "supervised_mse",
-    "wiener_smooth",
-]
+from jaxest.checks import check_gaussian_arguments as check_gaussian_arguments
+from jaxest.estimator import (
+    AbstractAssociativeEstimator as AbstractAssociativeEstimator,
+    AbstractEstimator as AbstractEstimator,
+    AbstractResult as AbstractResult,
+)
+from jaxest.filters import (
+    EKF as EKF,
+    SVDEKF as SVDEKF,
+    AbstractCovarianceFactor as AbstractCovarianceFactor,
+    AbstractGaussianFilter as AbstractGaussianFilter,
+    AbstractSVDFilter as AbstractSVDFilter,
+    CholeskyFactor as CholeskyFactor,
+    Covariance as Covariance,
+    FilterResult as FilterResult,
+    GaussianState as GaussianState,
+    ImprovedSVDKF as ImprovedSVDKF,
+    InformationFilter as InformationFilter,
+    InformationMatrix as InformationMatrix,
+    KalmanFilter as KalmanFilter,
+    SquareRootKF as SquareRootKF,
+    StepOutput as StepOutput,
+    SVDFactor as SVDFactor,
+)
+from jaxest.models import (
+    AbstractGaussianModel as AbstractGaussianModel,
+    LinearGaussian as LinearGaussian,
+    NonlinearGaussian as NonlinearGaussian,
+    Simulation as Simulation,
+    simulate as simulate,
+)
+from jaxest.montecarlo import monte_carlo as monte_carlo
+from jaxest.priors import Gaussian as Gaussian
+from jaxest.riccati import lqr_gain as lqr_gain, solve_care as solve_care, solve_dare as solve_dare
+from jaxest.run import SaveAt as SaveAt, raise_if_failed as raise_if_failed, run as run
+from jaxest.smoothers import SmootherResult as SmootherResult, rts_smooth as rts_smooth
+from jaxest.smoothers.steady_state import (
+    SteadyStateKalmanFilter as SteadyStateKalmanFilter,
+    arma_innovation_model as arma_innovation_model,
+    steady_state_gain as steady_state_gain,
+    steady_state_smooth as steady_state_smooth,
+)
+from jaxest.smoothers.wiener import WienerSmoother as WienerSmoother, wiener_smooth as wiener_smooth
+from jaxest.status import Status as Status, StatusFlag as StatusFlag
+from jaxest.tune import fit as fit, neg_loglik as neg_loglik, supervised_mse as supervised_mse
+
+
+def filter(estimator, model, ys, *args, **kwargs):  # noqa: A001 - the deprecated name
+    """Deprecated alias of :func:`run` (``filter`` shadows a Python builtin)."""
+    _warnings.warn("jaxest.filter is deprecated: use jaxest.run", DeprecationWarning, stacklevel=2)
+    if "init" in kwargs:
+        kwargs["prior"] = kwargs.pop("init")
+    return run(estimator, model, ys, *args, **kwargs)

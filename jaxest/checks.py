@@ -2,7 +2,9 @@
 
 Shapes are always checked; values (symmetry, definiteness, NaN) are checked when the arrays are
 concrete, i.e. not JAX tracers (inside a user's ``jit`` the values are unknown until run time, and
-trouble then shows in the result's ``status`` instead).
+trouble then shows in the result's ``status`` instead). Models are read through their methods
+(:class:`~jaxest.models.AbstractGaussianModel`), so a user's own model gets the same errors as the
+built-in ones.
 """
 
 from __future__ import annotations
@@ -10,10 +12,25 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from jaxest.models import AbstractGaussianModel, LinearGaussian, NonlinearGaussian
+from jaxest.priors import Gaussian
+
 
 def is_concrete(x) -> bool:
     """True for arrays whose values are known now (not tracers inside jit/vmap/grad)."""
     return not isinstance(x, jax.core.Tracer)
+
+
+def as_array(name: str, value):
+    """``value`` as something with a shape; Python numbers and lists become NumPy arrays."""
+    if value is None:
+        raise ValueError(f"{name}: expected an array, got None")
+    if hasattr(value, "shape") and hasattr(value, "ndim"):
+        return value
+    try:
+        return np.asarray(value, dtype=float)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name}: expected an array, got {type(value).__name__}") from err
 
 
 def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=False, ndim=2):
@@ -23,11 +40,7 @@ def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=F
     ``shape`` (trailing dims, ``None`` entries are free) is checked against the last ``ndim`` axes.
     ``spd``/``psd`` require a symmetric positive (semi)definite matrix (checked when concrete).
     """
-    if value is None:
-        raise ValueError(f"{name}: expected an array, got None")
-    arr = value
-    if not hasattr(arr, "shape"):
-        arr = np.asarray(arr)
+    arr = as_array(name, value)
     if arr.ndim not in (ndim, ndim + 1):
         raise ValueError(
             f"{name}: expected {ndim} dims (or {ndim + 1} with a time axis), got shape {arr.shape}"
@@ -45,21 +58,24 @@ def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=F
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name}: contains NaN or infinite entries")
     if spd or psd:
-        scale = max(np.max(np.abs(a)), np.finfo(np.float64).tiny)
-        if np.max(np.abs(a - np.swapaxes(a, -1, -2))) > 1e-6 * scale:
-            raise ValueError(f"{name}: must be symmetric")
-        eig = np.linalg.eigvalsh(0.5 * (a + np.swapaxes(a, -1, -2)))
-        if spd and np.min(eig) <= 0:
-            raise ValueError(
-                f"{name}: must be positive definite (smallest eigenvalue {np.min(eig):.3g})"
-            )
-        if psd and np.min(eig) < -1e-12 * scale:
-            raise ValueError(
-                f"{name}: must be positive semidefinite (smallest eigenvalue {np.min(eig):.3g})"
-            )
+        check_symmetric_definite(name, a, strict=spd)
 
 
-def check_sequence(name: str, value, length=None, dim=None):
+def check_symmetric_definite(name: str, a: np.ndarray, *, strict: bool):
+    """Symmetric and positive definite (``strict``) or semidefinite, for a concrete array."""
+    scale = max(np.max(np.abs(a)), np.finfo(np.float64).tiny)
+    if np.max(np.abs(a - np.swapaxes(a, -1, -2))) > 1e-6 * scale:
+        raise ValueError(f"{name}: must be symmetric")
+    smallest = np.min(np.linalg.eigvalsh(0.5 * (a + np.swapaxes(a, -1, -2))))
+    if strict and smallest <= 0:
+        raise ValueError(f"{name}: must be positive definite (smallest eigenvalue {smallest:.3g})")
+    if not strict and smallest < -1e-12 * scale:
+        raise ValueError(
+            f"{name}: must be positive semidefinite (smallest eigenvalue {smallest:.3g})"
+        )
+
+
+def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""):
     """``value`` must be (T, dim); ``length`` is the T it must match (``None``: any)."""
     if value is None:
         raise ValueError(f"{name}: expected an array with a leading time axis, got None")
@@ -69,75 +85,101 @@ def check_sequence(name: str, value, length=None, dim=None):
     if length is not None and shape[0] != length:
         raise ValueError(f"{name}: has {shape[0]} time steps but the measurements have {length}")
     if dim is not None and shape[1] != dim:
-        raise ValueError(f"{name}: expected {dim} columns, got {shape[1]}")
+        raise ValueError(f"{name}: expected {dim} columns{dim_source}, got {shape[1]}")
 
 
-def check_prior(prior):
-    """Raise ``ValueError`` naming ``init`` unless ``prior`` is a :class:`jaxest.Gaussian`."""
-    from jaxest.run import Gaussian
+def check_measurements(ys):
+    """``ys`` is (T, m) and has no +-inf (NaN marks a missing entry; inf is an error)."""
+    check_sequence("ys", ys)
+    if is_concrete(ys) and np.any(np.isinf(np.asarray(ys, dtype=np.float64))):
+        raise ValueError("ys: contains +-inf entries (only NaN marks a missing measurement)")
 
+
+def check_gaussian_prior(prior, n: int | None = None) -> int:
+    """``prior`` is a :class:`~jaxest.Gaussian` with a vector mean and an SPD covariance."""
     if not isinstance(prior, Gaussian):
-        raise ValueError(f"init: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}")
-    return prior
+        raise ValueError(
+            f"prior: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}"
+        )
+    if np.ndim(prior.mean) != 1:
+        raise ValueError(f"prior.mean: expected a vector, got shape {np.shape(prior.mean)}")
+    size = np.shape(prior.mean)[0]
+    if n is not None and size != n:
+        raise ValueError(f"prior.mean: expected shape ({n},) to match the model, got ({size},)")
+    if np.ndim(prior.cov) != 2:
+        raise ValueError(f"prior.cov: expected shape ({size}, {size}), got {np.shape(prior.cov)}")
+    check_matrix("prior.cov", prior.cov, (size, size), spd=True)
+    return size
 
 
 def _time_length(name, arr, T):
-    if arr is not None and np.ndim(arr) == 3 and arr.shape[0] < T:
+    if arr is not None and np.ndim(arr) == 3 and np.shape(arr)[0] < T:
         raise ValueError(
-            f"{name}: time-varying with {arr.shape[0]} steps, fewer than the {T} measurements"
+            f"{name}: time-varying with {np.shape(arr)[0]} steps, fewer than the {T} measurements"
         )
 
 
-def check_filter_arguments(model, ys, inputs, init):
-    """All checks of :func:`jaxest.filter`'s arguments."""
-    from jaxest.models import LinearGaussian, NonlinearGaussian
+def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = False):
+    """All checks of a Gaussian filter's arguments (:func:`jaxest.run`).
 
-    check_sequence("ys", ys)
-    T, m = np.shape(ys)
+    ``positive_Q``: the filter inverts or factors Q, so Q must be positive definite.
+    """
+    if not isinstance(model, AbstractGaussianModel):
+        raise ValueError(
+            f"model: expected a Gaussian model (a subclass of jaxest.AbstractGaussianModel, "
+            f"e.g. LinearGaussian or NonlinearGaussian), got {type(model).__name__}"
+        )
+    check_measurements(ys)
+    T, m_ys = np.shape(ys)
     if inputs is not None:
         check_sequence("inputs", inputs, length=T)
-    check_prior(init)
-    if np.ndim(init.mean) != 1:
-        raise ValueError(f"init.mean: expected a vector, got shape {np.shape(init.mean)}")
-    n = np.shape(init.mean)[0]
-    check_matrix("init.cov", init.cov, (n, n), spd=True, ndim=2)
-    if np.ndim(init.cov) != 2:
-        raise ValueError(f"init.cov: expected shape ({n}, {n}), got {np.shape(init.cov)}")
-    check_matrix("model.R", model.R, (m, m), spd=True)
+    n = np.shape(model.F)[-1] if isinstance(model, LinearGaussian) else None
     if isinstance(model, LinearGaussian):
-        check_matrix("model.F", model.F, (n, n))
-        check_matrix("model.H", model.H, (m, n))
-        q = n if model.G is None else np.shape(model.G)[-1]
-        if model.G is not None:
-            check_matrix("model.G", model.G, (n, q))
-        check_matrix("model.Q", model.Q, (q, q), psd=True)
-        for name in ("F", "H", "Q", "R", "G", "B", "D"):
-            _time_length(f"model.{name}", getattr(model, name), T)
-    elif isinstance(model, NonlinearGaussian):
-        check_matrix("model.Q", model.Q, square=True, psd=True)
-        for name in ("Q", "R"):
-            _time_length(f"model.{name}", getattr(model, name), T)
-    check_model_dimensions(model, init.mean, None if inputs is None else inputs[0], m)
+        check_matrix("model.F", model.F, (None, None), square=True)
+    n = check_gaussian_prior(prior, n)
+    u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
+    shapes = model_shapes(model, prior.mean, u0)
+    m = shapes["h(x)"][0]
+    check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")
+    q = shapes["G"][-1] if len(shapes["G"]) == 2 else None
+    expected = {
+        "f(x)": (n,), "F": (n, n), "G": (n, q), "Q": (q, q),
+        "h(x)": (m,), "H": (m, n), "R": (m, m),
+    }  # fmt: skip
+    for name, want in expected.items():
+        if shapes[name] != want:
+            raise ValueError(
+                f"model: its {name} has shape {shapes[name]}, expected {want} for a state of "
+                f"size {n} (prior.mean) and {m} measurements"
+            )
+    check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
 
 
-def check_model_dimensions(model, x, u, m):
-    """Evaluate the model abstractly at ``x`` and check the shapes it returns."""
-    n = x.shape[0]
+def model_shapes(model, x, u) -> dict[str, tuple]:
+    """Shapes of what the model's methods return at ``x`` (abstractly: nothing is computed)."""
     try:
-        mean, F, G, Q = jax.eval_shape(model.transition, x, u, 0)
-        y_mean, H, _ = jax.eval_shape(model.observation, x, u, 0)
+        f, F, G, Q = jax.eval_shape(model.transition, x, u, 0)
+        h, H, R = jax.eval_shape(model.observation, x, u, 0)
     except Exception as err:  # noqa: BLE001 - reported with the argument's name
         raise ValueError(
-            f"model: cannot be evaluated at init.mean ({type(err).__name__}: {err})"
+            f"prior.mean: the model cannot be evaluated at a state of shape {np.shape(x)} "
+            f"({type(err).__name__}: {err})"
         ) from err
-    expected = {
-        "model transition mean": (mean.shape, (n,)),
-        "model transition Jacobian F": (F.shape, (n, n)),
-        "model noise gain G": (G.shape, (n, Q.shape[-1])),
-        "model.Q": (Q.shape, (G.shape[-1], G.shape[-1])),
-        "model observation mean h(x)": (y_mean.shape, (m,)),
-        "model observation Jacobian H": (H.shape, (m, n)),
-    }
-    for name, (got, want) in expected.items():
-        if tuple(got) != want:
-            raise ValueError(f"{name}: expected shape {want}, got {tuple(got)}")
+    named = dict(zip(("f(x)", "F", "G", "Q", "h(x)", "H", "R"), (f, F, G, Q, h, H, R)))
+    return {name: tuple(a.shape) for name, a in named.items()}
+
+
+def check_noise_values(model, x, u, T, m, q, positive_Q):
+    """Q (R) symmetric positive semidefinite (definite), named as the model holds them."""
+    if isinstance(model, LinearGaussian | NonlinearGaussian):
+        check_matrix("model.R", model.R, (m, m), spd=True)
+        check_matrix("model.Q", model.Q, (q, q), psd=not positive_Q, spd=positive_Q)
+        names = ("F", "H", "Q", "R", "G", "B", "D") if isinstance(model, LinearGaussian) else "QR"
+        for name in names:
+            _time_length(f"model.{name}", getattr(model, name), T)
+        return
+    if not all(is_concrete(a) for a in jax.tree.leaves((model, x, u))):
+        return
+    _, Q = model.process_noise(x, u, 0)
+    check_matrix("model.measurement_cov(k=0)", model.measurement_cov(0), (m, m), spd=True)
+    check_matrix("model.process_noise(k=0) Q", Q, (q, q), psd=not positive_Q, spd=positive_Q)

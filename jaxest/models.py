@@ -2,19 +2,25 @@
 
 Discrete time, k = 0, 1, ..., T-1::
 
-    x_{k+1} = f(x_k, u_k) + G_k w_k      (or f(x_k, u_k + w_k): noise on the measured input)
-    y_k     = h(x_k, u_k) + v_k,          w_k ~ N(0, Q_k),  v_k ~ N(0, R_k)
+    x_{k+1} = f(x_k, u_k, k) + G_k w_k      (or f(x_k, u_k + w_k, k): noise on the measured input)
+    y_k     = h(x_k, u_k, k) + v_k,          w_k ~ N(0, Q_k),  v_k ~ N(0, R_k)
 
-Every model answers two questions the filters ask, at a linearisation point ``x``:
+The protocol estimators read a model through (never through its attributes) is
+:class:`AbstractGaussianModel`: a deterministic part, ``f`` and ``h``, apart from the noise
+description, ``process_noise`` (G, Q) and ``measurement_cov`` (R). From those four methods it
+derives what the filters ask at a linearisation point ``x`` --
 
-- ``transition(x, u, k) -> (f(x, u), F, G, Q)``  with F = df/dx and G the noise gain;
-- ``observation(x, u, k) -> (h(x, u), H, R)``    with H = dh/dx;
+- ``transition(x, u, k) -> (f(x, u, k), F, G, Q)``  with F = df/dx (by ``jax.linearize``);
+- ``observation(x, u, k) -> (h(x, u, k), H, R)``    with H = dh/dx;
 
-and ``sample_transition(x, u, k, w)`` / ``sample_observation(x, u, k, v)`` for simulation.
+-- and the samplers :func:`simulate` uses. A user's own model subclasses it and writes the four
+methods; :class:`LinearGaussian` and :class:`NonlinearGaussian` are the built-in ones.
 """
 
 from __future__ import annotations
 
+import abc
+import inspect
 from collections.abc import Callable
 
 import equinox as eqx
@@ -22,13 +28,75 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxest.priors import Gaussian
+
 
 def at_time(matrix: Array, k, ndim: int = 2) -> Array:
     """``matrix[k]`` if it carries a leading time axis (ndim + 1 dims), else ``matrix``."""
     return matrix[k] if matrix.ndim == ndim + 1 else matrix
 
 
-class LinearGaussian(eqx.Module):
+def jacobian_by_linearize(fn: Callable, x) -> tuple[Array, Array]:
+    """``fn(x)`` and its Jacobian, from one ``jax.linearize`` (the primal is computed once)."""
+    value, jvp = jax.linearize(fn, x)
+    eye = jnp.eye(x.shape[0], dtype=x.dtype)
+    return value, jax.vmap(jvp, out_axes=-1)(eye)
+
+
+class AbstractGaussianModel(eqx.Module):
+    """A model with Gaussian noise, read by every Gaussian filter through these methods.
+
+    Subclasses implement :meth:`f`, :meth:`h`, :meth:`process_noise` and
+    :meth:`measurement_cov`; Jacobians come from ``jax.linearize`` unless a subclass overrides
+    :meth:`transition_jacobian` / :meth:`observation_jacobian`. ``u`` is ``None`` without inputs.
+    """
+
+    @abc.abstractmethod
+    def f(self, x, u=None, k=0):
+        """The deterministic transition f(x_k, u_k, k)."""
+
+    @abc.abstractmethod
+    def h(self, x, u=None, k=0):
+        """The deterministic measurement h(x_k, u_k, k)."""
+
+    @abc.abstractmethod
+    def process_noise(self, x, u, k) -> tuple[Array, Array]:
+        """(G, Q): the noise gain at (x, u) and the covariance of w_k."""
+
+    @abc.abstractmethod
+    def measurement_cov(self, k) -> Array:
+        """R_k, the covariance of v_k."""
+
+    def transition_jacobian(self, x, u, k) -> tuple[Array, Array]:
+        """f(x, u, k) and F = df/dx."""
+        return jacobian_by_linearize(lambda z: self.f(z, u, k), x)
+
+    def observation_jacobian(self, x, u, k) -> tuple[Array, Array]:
+        """h(x, u, k) and H = dh/dx."""
+        return jacobian_by_linearize(lambda z: self.h(z, u, k), x)
+
+    def transition(self, x, u, k):
+        """(f(x, u, k), F, G, Q): what a filter's time update needs."""
+        mean, F = self.transition_jacobian(x, u, k)
+        G, Q = self.process_noise(x, u, k)
+        return mean, F, G, Q
+
+    def observation(self, x, u, k):
+        """(h(x, u, k), H, R): what a filter's measurement update needs."""
+        mean, H = self.observation_jacobian(x, u, k)
+        return mean, H, self.measurement_cov(k)
+
+    def sample_transition(self, x, u, k, w):
+        """x_{k+1} for the process-noise draw w ~ N(0, Q_k)."""
+        G, _ = self.process_noise(x, u, k)
+        return self.f(x, u, k) + G @ w
+
+    def sample_observation(self, x, u, k, v):
+        """y_k for the measurement-noise draw v ~ N(0, R_k)."""
+        return self.h(x, u, k) + v
+
+
+class LinearGaussian(AbstractGaussianModel):
     """x_{k+1} = F x_k + B u_k + G w_k,  y_k = H x_k + D u_k + v_k.
 
     Any matrix may carry a leading time axis (shape (T, ...)) for a time-varying model. ``G``
@@ -43,60 +111,65 @@ class LinearGaussian(eqx.Module):
     B: Float[Array, "*T n p"] | None = None
     D: Float[Array, "*T m p"] | None = None
 
-    @property
-    def state_dim(self) -> int:
-        return self.F.shape[-1]
-
-    @property
-    def obs_dim(self) -> int:
-        return self.H.shape[-2]
-
-    def noise_gain(self, k):
-        if self.G is None:
-            return jnp.eye(self.state_dim, dtype=self.F.dtype)
-        return at_time(self.G, k)
-
-    def transition(self, x, u, k):
-        F = at_time(self.F, k)
-        mean = F @ x
+    def f(self, x, u=None, k=0):
+        mean = at_time(self.F, k) @ x
         if self.B is not None and u is not None:
             mean = mean + at_time(self.B, k) @ u
-        return mean, F, self.noise_gain(k), at_time(self.Q, k)
+        return mean
 
-    def observation(self, x, u, k):
-        H = at_time(self.H, k)
-        mean = H @ x
+    def h(self, x, u=None, k=0):
+        mean = at_time(self.H, k) @ x
         if self.D is not None and u is not None:
             mean = mean + at_time(self.D, k) @ u
-        return mean, H, at_time(self.R, k)
+        return mean
 
-    def sample_transition(self, x, u, k, w):
-        mean, _, G, _ = self.transition(x, u, k)
-        return mean + G @ w
+    def process_noise(self, x, u, k):
+        n = self.F.shape[-1]
+        G = jnp.eye(n, dtype=self.F.dtype) if self.G is None else at_time(self.G, k)
+        return G, at_time(self.Q, k)
 
-    def sample_observation(self, x, u, k, v):
-        return self.observation(x, u, k)[0] + v
+    def measurement_cov(self, k):
+        return at_time(self.R, k)
+
+    def transition_jacobian(self, x, u, k):
+        return self.f(x, u, k), at_time(self.F, k)
+
+    def observation_jacobian(self, x, u, k):
+        return self.h(x, u, k), at_time(self.H, k)
 
 
-class NonlinearGaussian(eqx.Module):
+def call_with_optional(fn: Callable, x, u, k):
+    """``fn(x)``, ``fn(x, u)`` or ``fn(x, u, k)``, whichever ``fn`` takes."""
+    try:
+        params = inspect.signature(fn).parameters.values()
+    except (TypeError, ValueError):  # builtins without a signature: give everything
+        return fn(x, u, k)
+    if any(p.kind is p.VAR_POSITIONAL for p in params):
+        return fn(x, u, k)
+    positional = [p for p in params if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD)]
+    return fn(*(x, u, k)[: max(1, min(3, len(positional)))])
+
+
+class NonlinearGaussian(AbstractGaussianModel):
     """x_{k+1} = f(x_k, u_k) + G(x_k, u_k) w_k,  y_k = h(x_k, u_k) + v_k.
 
-    ``f`` and ``h`` are written in ``jax.numpy`` and take ``(x, u)`` (``u`` is ``None`` without
-    inputs). Their Jacobians come from ``jax.jacfwd`` unless ``jac_f`` / ``jac_h`` are given.
-    Make ``f``/``h`` equinox Modules to let gradients reach their parameters.
+    ``f`` and ``h`` are written in ``jax.numpy`` and take ``(x)``, ``(x, u)`` or ``(x, u, k)``
+    (``u`` is ``None`` without inputs). Their Jacobians come from ``jax.linearize`` unless
+    ``jac_f`` / ``jac_h`` (same arguments) are given. Make ``f``/``h`` equinox Modules to let
+    gradients reach their parameters.
 
     Process noise enters in one of three ways:
 
     - ``noise_gain=None``: additive, G = I (Q is n x n);
     - ``noise_gain=callable``: G(x, u) (Q is q x q);
     - ``noise_on_input=True``: the measured input is noisy, x_{k+1} = f(x_k, u_k + w_k), so
-      G = df/du at (x, u) and Q is the covariance of the input noise (eqs 27 of the SVD-EKF paper).
+      G = df/du at (x, u) and Q is the covariance of the input noise (eq 27 of the SVD-EKF paper).
 
     ``Q`` and ``R`` may carry a leading time axis.
     """
 
-    f: Callable
-    h: Callable
+    transition_fn: Callable
+    observation_fn: Callable
     Q: Float[Array, "*T q q"]
     R: Float[Array, "*T m m"]
     noise_gain: Callable | None = None
@@ -104,35 +177,50 @@ class NonlinearGaussian(eqx.Module):
     jac_f: Callable | None = None
     jac_h: Callable | None = None
 
+    def __init__(
+        self, f, h, Q, R, noise_gain=None, noise_on_input=False, jac_f=None, jac_h=None
+    ):
+        self.transition_fn, self.observation_fn, self.Q, self.R = f, h, Q, R
+        self.noise_gain, self.noise_on_input = noise_gain, noise_on_input
+        self.jac_f, self.jac_h = jac_f, jac_h
+
     def __check_init__(self):
         if self.noise_on_input and self.noise_gain is not None:
             raise ValueError("noise_gain: give either noise_gain or noise_on_input=True, not both")
 
-    def transition(self, x, u, k):
-        mean = self.f(x, u)
-        F = self.jac_f(x, u) if self.jac_f is not None else jax.jacfwd(self.f)(x, u)
-        if self.noise_on_input:
-            G = jax.jacfwd(self.f, argnums=1)(x, u)
-        elif self.noise_gain is not None:
-            G = self.noise_gain(x, u)
-        else:
-            G = jnp.eye(x.shape[0], dtype=mean.dtype)
-        return mean, F, G, at_time(self.Q, k)
+    def f(self, x, u=None, k=0):
+        return call_with_optional(self.transition_fn, x, u, k)
 
-    def observation(self, x, u, k):
-        mean = self.h(x, u)
-        H = self.jac_h(x, u) if self.jac_h is not None else jax.jacfwd(self.h)(x, u)
-        return mean, H, at_time(self.R, k)
+    def h(self, x, u=None, k=0):
+        return call_with_optional(self.observation_fn, x, u, k)
+
+    def process_noise(self, x, u, k):
+        Q = at_time(self.Q, k)
+        if self.noise_on_input:
+            G = jax.jacfwd(lambda v: self.f(x, v, k))(u)
+        elif self.noise_gain is not None:
+            G = call_with_optional(self.noise_gain, x, u, k)
+        else:
+            G = jnp.eye(x.shape[0], dtype=jnp.result_type(x, Q))
+        return G, Q
+
+    def measurement_cov(self, k):
+        return at_time(self.R, k)
+
+    def transition_jacobian(self, x, u, k):
+        if self.jac_f is None:
+            return super().transition_jacobian(x, u, k)
+        return self.f(x, u, k), call_with_optional(self.jac_f, x, u, k)
+
+    def observation_jacobian(self, x, u, k):
+        if self.jac_h is None:
+            return super().observation_jacobian(x, u, k)
+        return self.h(x, u, k), call_with_optional(self.jac_h, x, u, k)
 
     def sample_transition(self, x, u, k, w):
         if self.noise_on_input:
-            return self.f(x, u + w)
-        if self.noise_gain is not None:
-            return self.f(x, u) + self.noise_gain(x, u) @ w
-        return self.f(x, u) + w
-
-    def sample_observation(self, x, u, k, v):
-        return self.h(x, u) + v
+            return self.f(x, u + w, k)
+        return super().sample_transition(x, u, k, w)
 
 
 class Simulation(eqx.Module):
@@ -153,10 +241,11 @@ def gaussian_noise(key, cov):
 
 
 def simulate(
-    model,
+    model: AbstractGaussianModel,
     x0,
     num_steps: int,
     key,
+    *,
     inputs=None,
     process_noise: Callable = gaussian_noise,
     measurement_noise: Callable = gaussian_noise,
@@ -167,19 +256,19 @@ def simulate(
     samplers take ``(key, cov)`` and return one draw (default: Gaussian); pass, e.g., a uniform
     sampler for bounded noise. ``inputs`` has a leading time axis of length ``num_steps``.
     """
-    from jaxest.run import Gaussian
-
     key0, key = jax.random.split(key)
     if isinstance(x0, Gaussian):
         x0 = x0.mean + gaussian_noise(key0, x0.cov)
+    x0 = jnp.asarray(x0)
     keys = jax.random.split(key, (num_steps, 2))
-    steps = jnp.arange(num_steps)
 
     def body(x, args):
         k, (kw, kv), u = args
-        y = model.sample_observation(x, u, k, measurement_noise(kv, at_time(model.R, k)))
-        x_next = model.sample_transition(x, u, k, process_noise(kw, at_time(model.Q, k)))
+        v = measurement_noise(kv, model.measurement_cov(k))
+        y = model.sample_observation(x, u, k, v)
+        _, Q = model.process_noise(x, u, k)
+        x_next = model.sample_transition(x, u, k, process_noise(kw, Q))
         return x_next, (x, y)
 
-    _, (states, ys) = jax.lax.scan(body, jnp.asarray(x0), (steps, keys, inputs))
+    _, (states, ys) = jax.lax.scan(body, x0, (jnp.arange(num_steps), keys, inputs))
     return Simulation(states, ys)

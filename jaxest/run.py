@@ -1,114 +1,167 @@
-"""The one scan driver, the Gaussian prior and result Modules, and status codes.
+"""The one driver: runs any estimator over a measurement sequence.
 
-Every estimator in jaxest is an ``eqx.Module`` with
-
-- ``init(model, prior) -> state`` and
-- ``step(model, state, y_k, u_k) -> (state, output)``, a pure function that runs under
-  ``jit``, ``vmap``, ``grad`` and inside ``lax.scan``,
-
-and a ``result(outputs, state)`` that packs the stacked outputs into the estimator's result
-Module. :func:`run` drives any of them over a sequence; :func:`filter` adds argument checks for the
-Gaussian filters. Users with their own loop call ``step`` themselves.
-
-Failure under ``jit`` is data, not an exception: outputs carry an integer ``status`` per step
-whose bits are the :class:`Status` flags below.
+:func:`run` checks the arguments (``estimator.check``, before anything is traced), then scans
+``estimator.step`` over ``(k, y_k, u_k, key_k)`` with ``lax.scan`` -- or, for an
+:class:`~jaxest.AbstractAssociativeEstimator`, evaluates every prefix with
+``lax.associative_scan`` -- and packs the outputs with ``estimator.result``. What is stored is the
+caller's choice (:class:`SaveAt`): a 10^4-step, 10^4-run study asking for log-likelihoods only
+holds no per-step covariances.
 """
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+
+from jaxest.estimator import (
+    AbstractAssociativeEstimator,
+    AbstractEstimator,
+    associative_outputs,
+)
+from jaxest.status import StatusFlag
 
 
-class Status:
-    """Bit flags of the per-step ``status`` field (0 means all is well)."""
+class SaveAt(eqx.Module):
+    """What :func:`run` keeps of each step's output.
 
-    OK = 0
-    NONFINITE = 1  #: a mean, covariance or likelihood term is NaN or infinite
-    NOT_POSITIVE_DEFINITE = 2  #: a covariance (or its factor) lost positive definiteness
-    EMPTY_SET = 4  #: set-membership: measurement inconsistent with the predicted set
-    UNBOUNDED = 8  #: set-membership: the set grew without bound (contains everything)
-    NOT_EXCITED = 16  #: adaptive observer: persistent excitation lost over the window
-
-    @staticmethod
-    def describe(code: int) -> str:
-        """Human-readable names of the flags set in ``code``."""
-        names = [n for n, v in vars(Status).items() if isinstance(v, int) and v and code & v]
-        return ", ".join(names) if names else "OK"
-
-
-class Gaussian(eqx.Module):
-    """A Gaussian prior N(mean, cov) on the state at the first measurement time."""
-
-    mean: Float[Array, " n"]
-    cov: Float[Array, "n n"]
-
-
-class FilterResult(eqx.Module):
-    """What every Gaussian filter returns (covariances are always full matrices here).
-
-    ``predicted_*`` are the one-step predictions x(k|k-1), P(k|k-1) used to process y_k;
-    ``mean``/``cov`` are the filtered x(k|k), P(k|k). ``innovation`` is y_k - h(x(k|k-1)) with
-    NaN (missing) entries set to zero; ``innovation_cov`` its covariance. ``loglik`` is the
-    Gaussian log-likelihood of the observed entries; ``status`` holds :class:`Status` bits per step.
+    ``fields``: the output fields stacked over time (``None``: the estimator's defaults; ``()``:
+    none -- the result then holds the final state, ``any_status`` and what the state accumulates,
+    e.g. a Gaussian filter's total log-likelihood). ``fn``: a function of each step's output
+    whose values are stacked into ``result.saved`` (e.g. ``lambda out: out.mean[:2]``).
     """
 
-    mean: Float[Array, "T n"]
-    cov: Float[Array, "T n n"]
-    predicted_mean: Float[Array, "T n"]
-    predicted_cov: Float[Array, "T n n"]
-    innovation: Float[Array, "T m"]
-    innovation_cov: Float[Array, "T m m"]
-    loglik_terms: Float[Array, " T"]
-    status: Int[Array, " T"]
+    fields: tuple[str, ...] | None = eqx.field(static=True, default=None)
+    fn: Callable | None = eqx.field(static=True, default=None)
 
-    @property
-    def loglik(self) -> Float[Array, ""]:
-        """Total log-likelihood log p(y_0, ..., y_{T-1})."""
-        return jnp.sum(self.loglik_terms, axis=-1)
-
-    @property
-    def ok(self) -> jax.Array:
-        """True where every step of the run finished with status OK."""
-        return jnp.all(self.status == Status.OK, axis=-1)
+    def __init__(self, fields: Sequence[str] | None = None, fn: Callable | None = None):
+        self.fields = None if fields is None else tuple(fields)
+        self.fn = fn
 
 
-def check_finite_status(*arrays) -> Int[Array, ""]:
-    """``Status.NONFINITE`` if any entry of ``arrays`` is not finite, else 0."""
-    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in arrays]))
-    return jnp.where(finite, Status.OK, Status.NONFINITE).astype(jnp.int32)
+def _keep(output, fields: tuple[str, ...] | None):
+    """``output`` with the fields not in ``fields`` set to ``None``."""
+    if fields is None:
+        return output
+    names = [f.name for f in dataclasses.fields(output)]
+    unknown = set(fields) - set(names)
+    if unknown:
+        raise ValueError(f"save: {sorted(unknown)} are not output fields; choose from {names}")
+    return dataclasses.replace(output, **{n: None for n in names if n not in fields})
 
 
 @eqx.filter_jit
-def run(estimator, model, ys, inputs=None, prior: Any = None):
-    """Run ``estimator`` over the measurement sequence ``ys`` (leading axis = time) with one
-    ``lax.scan`` and return ``estimator.result(outputs, final_state)``.
+def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel):
+    T = ys.shape[0]
+    ks = k0 + jnp.arange(T)
+    fields = estimator.default_fields if save.fields is None else save.fields
 
-    ``inputs`` (leading axis = time, same length as ``ys``) is passed to ``step`` as ``u_k``;
-    ``None`` means no inputs. ``prior`` is whatever ``estimator.init`` takes. Compiled once per
-    estimator, model structure and shapes (``eqx.filter_jit``); inside a user's ``jit`` it inlines.
+    def keep(output):
+        saved = None if save.fn is None else save.fn(output)
+        return _keep(output, fields), saved, output.status
+
+    if parallel:
+        outputs, final = associative_outputs(estimator, model, prior, ks, ys, inputs)
+        outputs, saved, status = keep(outputs)
+        any_status = jax.lax.reduce(status, jnp.int32(0), jax.lax.bitwise_or, (0,))
+    else:
+        keys = None if key is None else jax.random.split(key, T)
+        first = estimator.init(model, prior) if state is None else state
+
+        def body(carry, args):
+            state, any_status = carry
+            k, y, u, key_k = args
+            state, output = estimator.step(model, state, k, y, u, key_k)
+            kept, saved, status = keep(output)
+            return (state, any_status | status), (kept, saved)
+
+        (final, any_status), (outputs, saved) = jax.lax.scan(
+            body, (first, jnp.zeros((), jnp.int32)), (ks, ys, inputs, keys)
+        )
+    result = estimator.result(outputs, final)
+    return eqx.tree_at(
+        lambda r: (r.any_status, r.saved),
+        result,
+        (any_status, saved),
+        is_leaf=lambda x: x is None,
+    )
+
+
+def run(
+    estimator: AbstractEstimator,
+    model,
+    ys,
+    *args,
+    prior: Any = None,
+    inputs=None,
+    key=None,
+    state=None,
+    k0: int = 0,
+    save: SaveAt | None = None,
+    parallel: bool | None = None,
+    throw: bool = False,
+):
+    """Run ``estimator`` over the measurements ``ys`` (leading axis = time; NaN = missing).
+
+    Args:
+        estimator: any :class:`~jaxest.AbstractEstimator` (``KalmanFilter()``, ``SVDEKF()``...).
+        model: the model the estimator reads.
+        ys: measurements, shape (T, m).
+        prior: what ``estimator.init`` takes (a :class:`~jaxest.Gaussian` for the Gaussian
+            filters), the belief about the state at the first measurement.
+        inputs: known inputs u_k with leading axis T, or ``None``.
+        key: PRNG key, split into one key per step for estimators that sample.
+        state: resume from this state (e.g. ``result.final_state``) instead of ``prior``;
+            ``k0`` is then the index of the first of ``ys`` (the number of steps already done).
+        save: what to keep of each step (:class:`SaveAt`; default: the estimator's fields).
+        parallel: ``lax.associative_scan`` (O(log T) depth) instead of ``lax.scan``; only for
+            associative estimators, the default for them.
+        throw: raise (``eqx.error_if``) if any step's status is not OK, with what to do.
+
+    Arguments are checked before anything is traced: bad input raises ``ValueError`` naming the
+    argument. Compiled once per estimator, model structure and shapes; inside a user's ``jit``
+    it inlines. Numerical trouble under ``jit`` shows in ``result.status``.
     """
-    state = estimator.init(model, prior)
+    if args:
+        raise ValueError(
+            f"prior: pass prior, inputs and key by keyword, run(estimator, model, ys, "
+            f"prior=..., inputs=...); got {len(args)} extra positional argument(s)"
+        )
+    if not isinstance(estimator, AbstractEstimator):
+        raise ValueError(
+            f"estimator: expected a jaxest estimator (an AbstractEstimator), "
+            f"got {type(estimator).__name__}"
+        )
+    associative = isinstance(estimator, AbstractAssociativeEstimator)
+    if parallel is None:
+        parallel = associative and state is None
+    if parallel and not associative:
+        raise ValueError(f"parallel: {type(estimator).__name__} is not associative")
+    if parallel and state is not None:
+        raise ValueError("parallel: resuming from a state is sequential; pass parallel=False")
+    if estimator.needs_key and key is None:
+        raise ValueError(f"key: {type(estimator).__name__} samples; pass key=jax.random.key(...)")
+    if state is None:
+        estimator.check(model, ys, inputs, prior)
+    result = _run(
+        estimator, model, jnp.asarray(ys), inputs, prior, state, k0, key,
+        save or SaveAt(), parallel,
+    )  # fmt: skip
+    if throw:
+        result = raise_if_failed(result)
+    return result
 
-    def body(carry, yu):
-        y, u = yu
-        return estimator.step(model, carry, y, u)
 
-    final, outputs = jax.lax.scan(body, state, (ys, inputs))
-    return estimator.result(outputs, final)
+def raise_if_failed(result, flags: type[StatusFlag] | None = None):
+    """``result``, raising (``eqx.error_if``, works under ``jit``) if its status is not OK."""
+    from jaxest.status import Status
 
-
-def filter(estimator, model, ys, inputs=None, init: Gaussian | None = None) -> FilterResult:
-    """Filter ``ys`` with a Gaussian ``estimator`` (``KalmanFilter()``, ``EKF()``, ``SVDEKF()``...).
-
-    Arguments are checked before anything is traced: a malformed model, prior or sequence raises
-    ``ValueError`` naming the argument. ``init`` is the prior on the state at the first measurement.
-    """
-    from jaxest.checks import check_filter_arguments
-
-    check_filter_arguments(model, ys, inputs, init)
-    return run(estimator, model, jnp.asarray(ys), inputs, init)
+    flags = flags or Status
+    message = "a step's status is not OK; result.any_status has the flags. " + "; ".join(
+        flags.explain(flag) for flag in flags if flag.value
+    )
+    return eqx.error_if(result, result.any_status != 0, message)

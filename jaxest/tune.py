@@ -18,6 +18,8 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from jaxest.run import SaveAt, run
+
 PARAMETRISATIONS = ("cholesky", "log_diagonal")
 
 
@@ -129,23 +131,26 @@ def _value_and_grad(objective, opt_state):
     return optax.value_and_grad_from_state(objective)
 
 
-def neg_loglik(estimator, ys, prior, inputs=None) -> Callable:
-    """Loss: minus the mean log-likelihood per run and step of a batch ``ys`` (runs, T, m)."""
-    from jaxest.run import run
+def neg_loglik(estimator, ys, *, prior, inputs=None) -> Callable:
+    """Loss: minus the mean log-likelihood per run and step of a batch ``ys`` (runs, T, m).
+
+    Only the log-likelihood is kept of each run (``SaveAt(fields=())``): no per-step arrays.
+    """
+    save = SaveAt(fields=())
 
     def loss(model):
-        lls = jax.vmap(lambda y, u: run(estimator, model, y, u, prior).loglik)(ys, inputs)
-        return -jnp.mean(lls) / ys.shape[1]
+        one = lambda y, u: run(estimator, model, y, prior=prior, inputs=u, save=save).loglik
+        return -jnp.mean(jax.vmap(one)(ys, inputs)) / ys.shape[1]
 
     return loss
 
 
-def supervised_mse(estimator, ys, states, prior, inputs=None) -> Callable:
+def supervised_mse(estimator, ys, states, *, prior, inputs=None) -> Callable:
     """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n)."""
-    from jaxest.run import run
+    save = SaveAt(fields=("mean",))
 
     def loss(model):
-        means = jax.vmap(lambda y, u: run(estimator, model, y, u, prior).mean)(ys, inputs)
-        return jnp.mean((means - states) ** 2)
+        one = lambda y, u: run(estimator, model, y, prior=prior, inputs=u, save=save).mean
+        return jnp.mean((jax.vmap(one)(ys, inputs) - states) ** 2)
 
     return loss

@@ -15,7 +15,7 @@ def good():
 
 def test_good_arguments_pass():
     model, ys, prior = good()
-    assert je.filter(KalmanFilter(), model, ys, init=prior).mean.shape == (10, 2)
+    assert je.run(KalmanFilter(), model, ys, prior=prior).mean.shape == (10, 2)
 
 
 @pytest.mark.parametrize(
@@ -70,21 +70,21 @@ def test_good_arguments_pass():
 def test_bad_arguments_name_the_argument(change, match):
     model, ys, prior = change(*good())
     with pytest.raises(ValueError, match=match):
-        je.filter(SVDEKF(), model, ys, init=prior)
+        je.run(SVDEKF(), model, ys, prior=prior)
 
 
 def test_mismatched_input_length():
     model, ys, prior = good()
     model = je.LinearGaussian(model.F, model.H, model.Q, model.R, B=jnp.ones((2, 1)))
     with pytest.raises(ValueError, match="inputs: has 4 time steps but the measurements have 10"):
-        je.filter(KalmanFilter(), model, ys, inputs=jnp.zeros((4, 1)), init=prior)
+        je.run(KalmanFilter(), model, ys, inputs=jnp.zeros((4, 1)), prior=prior)
 
 
 def test_nonlinear_model_shapes_checked():
     model = je.NonlinearGaussian(lambda x, u: x[:1], lambda x, u: x, jnp.eye(2), jnp.eye(2))
     with pytest.raises(ValueError, match="model transition mean"):
-        je.filter(
-            KalmanFilter(), model, jnp.zeros((5, 2)), init=je.Gaussian(jnp.zeros(2), jnp.eye(2))
+        je.run(
+            KalmanFilter(), model, jnp.zeros((5, 2)), prior=je.Gaussian(jnp.zeros(2), jnp.eye(2))
         )
     with pytest.raises(ValueError, match="noise_gain"):
         je.NonlinearGaussian(
@@ -111,7 +111,7 @@ def test_missing_rows_are_skipped_exactly():
     only_first = je.LinearGaussian(
         model.F, jnp.asarray([[1.0, 0.0]]), model.Q, jnp.asarray([[1.0]])
     )
-    a = je.filter(SVDEKF(), full, jnp.asarray(ys), init=prior)
-    b = je.filter(SVDEKF(), only_first, jnp.asarray(ys[:, :1]), init=prior)
+    a = je.run(SVDEKF(), full, jnp.asarray(ys), prior=prior)
+    b = je.run(SVDEKF(), only_first, jnp.asarray(ys[:, :1]), prior=prior)
     np.testing.assert_allclose(a.mean, b.mean, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(a.loglik, b.loglik, rtol=1e-12)

@@ -30,7 +30,7 @@ def test_matches_numpy_kalman_filter(Filter):
     ys = np.array(sim.y)
     ys[3, 0] = np.nan  # a single missing entry
     ys[7, :] = np.nan  # a whole missing vector
-    res = je.filter(Filter(), model, jnp.asarray(ys), init=prior)
+    res = je.run(Filter(), model, jnp.asarray(ys), prior=prior)
     means, covs, pmeans, pcovs, loglik = kalman_filter(
         np.asarray(model.F), np.asarray(model.H), np.asarray(model.Q), np.asarray(model.R),
         np.asarray(prior.mean), np.asarray(prior.cov), ys,
@@ -46,9 +46,9 @@ def test_matches_numpy_kalman_filter(Filter):
 @pytest.mark.parametrize("seed", [2, 3, 4])
 def test_factored_filters_agree_with_kf_on_random_systems(seed):
     model, prior, sim = linear_problem(seed=seed, n=5, m=3, T=30)
-    ref = je.filter(KalmanFilter(), model, sim.y, init=prior)
+    ref = je.run(KalmanFilter(), model, sim.y, prior=prior)
     for Filter in FILTERS[1:]:
-        res = je.filter(Filter(), model, sim.y, init=prior)
+        res = je.run(Filter(), model, sim.y, prior=prior)
         for name in ("mean", "cov", "innovation", "innovation_cov", "loglik_terms"):
             np.testing.assert_allclose(
                 getattr(res, name),
@@ -69,7 +69,7 @@ def test_kalman_filter_matches_dynamax():
         emission_weights=model.H, emission_covariance=model.R,
     )  # fmt: skip
     post = dynamax.lgssm_filter(params, sim.y)
-    res = je.filter(KalmanFilter(), model, sim.y, init=prior)
+    res = je.run(KalmanFilter(), model, sim.y, prior=prior)
     np.testing.assert_allclose(res.mean, post.filtered_means, rtol=1e-8, atol=1e-9)
     np.testing.assert_allclose(res.cov, post.filtered_covariances, rtol=1e-8, atol=1e-9)
     np.testing.assert_allclose(res.loglik, post.marginal_loglik, rtol=1e-9)
@@ -86,7 +86,7 @@ def test_time_varying_model_matches_numpy():
     sim = je.simulate(model, prior, T, jax.random.PRNGKey(0))
     means, covs, *_, loglik = kalman_filter(F, H, Q, R, np.zeros(n), np.eye(n), np.asarray(sim.y))
     for Filter in (KalmanFilter, SVDEKF):
-        res = je.filter(Filter(), model, sim.y, init=prior)
+        res = je.run(Filter(), model, sim.y, prior=prior)
         np.testing.assert_allclose(res.mean, means, rtol=1e-9, atol=1e-10)
         np.testing.assert_allclose(res.loglik, loglik, rtol=1e-9)
 
@@ -143,7 +143,7 @@ def test_ekf_matches_numpy_ekf(Filter):
         0.1 * np.eye(2),
         np.asarray(sim.y),
     )
-    res = je.filter(Filter(), model, sim.y, init=prior)
+    res = je.run(Filter(), model, sim.y, prior=prior)
     np.testing.assert_allclose(res.mean, means, rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(res.loglik, loglik, rtol=1e-9)
 
@@ -156,14 +156,14 @@ def test_jit_vmap_grad(Filter, dtype):
 
     def loglik(q_scale, r_scale, y):
         mdl = je.LinearGaussian(model.F, model.H, q_scale * model.Q, r_scale * model.R)
-        return je.run(Filter(), mdl, y, None, prior).loglik
+        return je.run(Filter(), mdl, y, prior=prior).loglik
 
     one = jax.jit(loglik)(dtype(1.0), dtype(1.0), sim.y)
     batch = jax.vmap(loglik, in_axes=(None, None, 0))(dtype(1.0), dtype(1.0), ys)
     grads = jax.jit(jax.vmap(jax.grad(loglik, argnums=(0, 1)), in_axes=(None, None, 0)))(
         dtype(1.0), dtype(1.0), ys
     )
-    ref = je.run(KalmanFilter(), model, sim.y, None, prior).loglik
+    ref = je.run(KalmanFilter(), model, sim.y, prior=prior).loglik
     assert one.dtype == dtype and batch.dtype == dtype and grads[0].dtype == dtype
     tol = 1e-4 if dtype == jnp.float32 else 1e-10
     np.testing.assert_allclose(one, ref, rtol=tol)
@@ -175,10 +175,7 @@ def test_jit_vmap_grad(Filter, dtype):
                 je.run(
                     KalmanFilter(),
                     je.LinearGaussian(model.F, model.H, q * model.Q, model.R),
-                    sim.y,
-                    None,
-                    prior,
-                ).loglik
+                    sim.y, prior=prior).loglik
             )
         )
     )(dtype(1.0))
@@ -193,7 +190,7 @@ def test_gradients_match_finite_differences(Filter):
         a, q, r, p0 = params
         F = model.F.at[0, 1].add(a)
         mdl = je.LinearGaussian(F, model.H, model.Q + q * jnp.eye(3), model.R * r)
-        res = je.run(Filter(), mdl, sim.y, None, je.Gaussian(prior.mean, prior.cov * p0))
+        res = je.run(Filter(), mdl, sim.y, prior=je.Gaussian(prior.mean, prior.cov * p0))
         return res.loglik + jnp.sum(res.mean[-1] ** 2)  # likelihood and a loss on the outputs
 
     x0 = jnp.asarray([0.0, 0.05, 1.2, 1.5])
@@ -212,7 +209,7 @@ def test_svd_gradients_finite_with_repeated_singular_values(Filter):
 
     def loglik(Filter, q, c):
         mdl = je.LinearGaussian(model.F, model.H, q * jnp.eye(3), model.R)
-        return je.run(Filter(), mdl, sim.y, None, je.Gaussian(jnp.zeros(3), c * jnp.eye(3))).loglik
+        return je.run(Filter(), mdl, sim.y, prior=je.Gaussian(jnp.zeros(3), c * jnp.eye(3))).loglik
 
     ours = jax.grad(loglik, argnums=(1, 2))(Filter, 0.2, 3.0)
     ekf = jax.grad(loglik, argnums=(1, 2))(EKF, 0.2, 3.0)
@@ -230,7 +227,7 @@ def test_svd_filters_survive_where_kf_fails():
         assert posterior_error(Filter, 1e-9) < 1e-5
     assert not posterior_error(KalmanFilter, 1e-9) < 1e-2  # NaN or O(1) error
     model, prior, ys = problem(1e-9)
-    assert je.run(KalmanFilter(), model, ys, None, prior).status[0] != je.Status.OK  # and says so
+    assert je.run(KalmanFilter(), model, ys, prior=prior).status[0] != je.Status.OK  # and says so
 
 
 def test_status_flags_nonfinite_inside_jit():
@@ -238,6 +235,6 @@ def test_status_flags_nonfinite_inside_jit():
     bad = je.LinearGaussian(
         model.F, model.H, model.Q, -model.R
     )  # indefinite, hidden from checks by jit
-    res = jax.jit(lambda m: je.run(KalmanFilter(), m, sim.y, None, prior))(bad)
+    res = jax.jit(lambda m: je.run(KalmanFilter(), m, sim.y, prior=prior))(bad)
     assert np.all(np.asarray(res.status) != je.Status.OK)
     assert "NONFINITE" in je.Status.describe(int(res.status[0]))

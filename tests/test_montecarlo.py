@@ -30,7 +30,7 @@ prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
 
 def one_run(key):
     sim = je.simulate(model, prior, 50, key)
-    res = je.run(SVDEKF(), model, sim.y, None, prior)
+    res = je.run(SVDEKF(), model, sim.y, prior=prior)
     return {"loglik": res.loglik, "error": jnp.mean((res.mean - sim.states) ** 2)}
 
 out = monte_carlo(one_run, jax.random.PRNGKey(42), 12, chunk_size=4)
@@ -75,7 +75,7 @@ def test_chunking_does_not_change_which_key_a_run_gets():
     # run 7 is the run of key split(key, 10)[7] (up to the last bit: vmap vs a single call)
     np.testing.assert_allclose(whole[7], sim(jax.random.split(key, 10)[7]), rtol=1e-13, atol=1e-15)
     lls = monte_carlo(
-        lambda k: je.run(SVDEKF(), model, sim(k), None, prior).loglik, key, 10, chunk_size=4
+        lambda k: je.run(SVDEKF(), model, sim(k), prior=prior).loglik, key, 10, chunk_size=4
     )
     assert lls.shape == (10,) and np.all(np.isfinite(lls))
 

@@ -284,7 +284,7 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
             system, mean0, cov0, DT, T, jax.random.key(0)
         )
         prior = Gaussian(mean0, cov0)
-        res = jax.jit(lambda ys: run(filt, system, ys, None, prior))(ys)
+        res = jax.jit(lambda ys: run(filt, system, ys, prior=prior))(ys)
         assert res.mean.dtype == dt_ and np.all(np.asarray(res.status) == 0)
         x = np.asarray(mean0, np.float64)
         hears, gains = np.asarray(structure.hears), np.asarray(des.gains, np.float64)
@@ -297,10 +297,10 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
         systems = jax.vmap(lambda k: mass_chain(3, k_near=k, dtype=dt_))(
             jnp.asarray([0.3, 0.6], dt_)
         )
-        batched = jax.vmap(lambda s, y: run(filt, s, y, None, prior).mean)(
+        batched = jax.vmap(lambda s, y: run(filt, s, y, prior=prior).mean)(
             systems, jnp.stack([ys, 2 * ys])
         )
-        second = run(filt, mass_chain(3, k_near=0.6, dtype=dt_), 2 * ys, None, prior).mean
+        second = run(filt, mass_chain(3, k_near=0.6, dtype=dt_), 2 * ys, prior=prior).mean
         np.testing.assert_allclose(np.asarray(batched[1]), np.asarray(second), rtol=tol, atol=tol)
 
         # grad through the filter w.r.t. the model (mass 0's stiffness) vs finite differences
@@ -308,7 +308,7 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
         def loss(a):
             others = (getattr(system, m) for m in ("C", "F", "L", "H1", "H2", "Q", "R"))
             sys = LargeScaleSystem(system.A.at[0, 1, 0].set(a), *others)
-            return jnp.sum(run(filt, sys, ys, None, prior).final_mean ** 2)
+            return jnp.sum(run(filt, sys, ys, prior=prior).final_mean ** 2)
 
         a0 = system.A[0, 1, 0]
         g = float(jax.grad(loss)(a0))
@@ -330,7 +330,7 @@ def test_monte_carlo_matches_designed_cost(chain3):
 
         def errors(key):
             xs, ys = simulate(system, mean0, cov0, DT, STEPS, key)
-            e = xs - run(filt, system, ys, None, prior).mean
+            e = xs - run(filt, system, ys, prior=prior).mean
             return jnp.einsum("tia,tia->t", e, e)
 
         runs = 64

@@ -35,7 +35,7 @@ SCRIPT = textwrap.dedent(
     for name, structure in structures.items():
         des = design(system, structure, cov0, jnp.arange(T) * dt)
         filt = NetworkFilter(structure, des.gains, dt)
-        single = run(filt, system, ys, None, Gaussian(mean0, cov0))
+        single = run(filt, system, ys, prior=Gaussian(mean0, cov0))
         sharded = run_sharded(filt, system, ys, Gaussian(mean0, cov0))
         assert sharded.mean.sharding.device_set == set(jax.devices()), name
         np.testing.assert_allclose(np.asarray(sharded.mean), np.asarray(single.mean), rtol=1e-12, atol=1e-13)

@@ -38,7 +38,7 @@ def test_maximum_likelihood_recovers_q_and_r_from_tenfold_error():
     wrong = je.LinearGaussian(truth.F, truth.H, 10 * truth.Q, truth.R / 10)
     result = fit(
         wrong,
-        neg_loglik(KalmanFilter(), sims.y, prior),
+        neg_loglik(KalmanFilter(), sims.y, prior=prior),
         {"Q": "cholesky", "R": "log_diagonal"},
         optimizer=optax.adam(0.05),
         num_steps=400,
@@ -49,7 +49,7 @@ def test_maximum_likelihood_recovers_q_and_r_from_tenfold_error():
     nll = jax.jit(
         jax.vmap(
             jax.vmap(
-                lambda a, b: neg_loglik(KalmanFilter(), sims.y, prior)(
+                lambda a, b: neg_loglik(KalmanFilter(), sims.y, prior=prior)(
                     je.LinearGaussian(truth.F, truth.H, truth.Q * jnp.exp(a), truth.R * jnp.exp(b))
                 ),
                 (None, 0),
@@ -65,7 +65,7 @@ def test_maximum_likelihood_recovers_q_and_r_from_tenfold_error():
 def test_free_mask_holds_entries_fixed_and_supervised_loss_lowers_error():
     truth, prior, sims = scalar_problem(runs=4, T=100)
     wrong = je.LinearGaussian(truth.F, truth.H, 10 * truth.Q, truth.R / 10)
-    loss = supervised_mse(KalmanFilter(), sims.y, sims.states, prior)
+    loss = supervised_mse(KalmanFilter(), sims.y, sims.states, prior=prior)
     result = fit(
         wrong,
         loss,

@@ -1,7 +1,24 @@
-"""Gaussian filters; each is used as ``jaxest.filter(Filter(), model, ys, inputs, init=prior)``."""
+"""Gaussian filters, each run as ``jaxest.run(Filter(), model, ys, prior=prior)``."""
 
-from jaxest.filters.kalman import EKF, InformationFilter, KalmanFilter
-from jaxest.filters.sqrt_kf import SquareRootKF
-from jaxest.filters.svd_ekf import SVDEKF, ImprovedSVDKF
-
-__all__ = ["EKF", "SVDEKF", "ImprovedSVDKF", "InformationFilter", "KalmanFilter", "SquareRootKF"]
+from jaxest.filters.base import (
+    AbstractCovarianceFactor as AbstractCovarianceFactor,
+    AbstractGaussianFilter as AbstractGaussianFilter,
+    CholeskyFactor as CholeskyFactor,
+    Covariance as Covariance,
+    FilterResult as FilterResult,
+    GaussianState as GaussianState,
+    InformationMatrix as InformationMatrix,
+    StepOutput as StepOutput,
+    SVDFactor as SVDFactor,
+)
+from jaxest.filters.kalman import (
+    EKF as EKF,
+    InformationFilter as InformationFilter,
+    KalmanFilter as KalmanFilter,
+)
+from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
+from jaxest.filters.svd_ekf import (
+    SVDEKF as SVDEKF,
+    AbstractSVDFilter as AbstractSVDFilter,
+    ImprovedSVDKF as ImprovedSVDKF,
+)

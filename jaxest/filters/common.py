@@ -1,5 +1,4 @@
-"""Pieces every Gaussian filter shares: missing-data masking, the per-step output, the likelihood
-term, status checks, and the covariance-form step that also serves as the reference derivative of
+"""Pieces every Gaussian filter shares: missing-data masking, the likelihood term, status checks, and the covariance-form step that also serves as the reference derivative of
 the factored (SVD) filters."""
 
 from __future__ import annotations
@@ -11,40 +10,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest.checks import check_prior  # noqa: F401 - the filters' prior check, re-exported
 from jaxest.linalg import mm, sandwich, symmetrize
-from jaxest.run import FilterResult, Status, check_finite_status
+from jaxest.status import Status, finite_status
 
 #: a Python float: computing it with jnp would start the XLA backend at import (which
 #: jax.distributed.initialize forbids) and fix it in float32 before x64 is switched on
 LOG_2PI = math.log(2.0 * math.pi)
-
-
-class StepOutput(eqx.Module):
-    """What one filter step emits (stacked over time by the scan driver)."""
-
-    predicted_mean: Float[Array, " n"]
-    predicted_cov: Float[Array, "n n"]
-    mean: Float[Array, " n"]
-    cov: Float[Array, "n n"]
-    innovation: Float[Array, " m"]
-    innovation_cov: Float[Array, "m m"]
-    loglik: Float[Array, ""]
-    status: Int[Array, ""]
-
-
-def pack_result(outputs: StepOutput, final_state) -> FilterResult:
-    """Stacked :class:`StepOutput` -> :class:`~jaxest.run.FilterResult`."""
-    return FilterResult(
-        mean=outputs.mean,
-        cov=outputs.cov,
-        predicted_mean=outputs.predicted_mean,
-        predicted_cov=outputs.predicted_cov,
-        innovation=outputs.innovation,
-        innovation_cov=outputs.innovation_cov,
-        loglik_terms=outputs.loglik,
-        status=outputs.status,
-    )
 
 
 class Measurement(eqx.Module):
@@ -62,7 +33,7 @@ class Measurement(eqx.Module):
 
 
 def masked_measurement(y, y_pred, H, R) -> Measurement:
-    observed = jnp.isfinite(y)
+    observed = ~jnp.isnan(y)  # only NaN is missing: +-inf propagates and sets NONFINITE
     mask = observed.astype(H.dtype)
     e = jnp.where(observed, y - y_pred, 0.0)
     both = mask[:, None] * mask[None, :]
@@ -131,7 +102,7 @@ def step_status(*arrays, cov=None, cov_factor=None, positive=None) -> Int[Array,
     """Status bits of one step: non-finite values, and loss of definiteness of ``cov``, of the
     covariance whose Cholesky factor ``cov_factor`` is at hand, or as a filter's own boolean
     test ``positive`` of its factors says."""
-    status = check_finite_status(*arrays)
+    status = finite_status(*arrays)
     if cov is not None:
         status = status | definiteness_status(cov)
     if cov_factor is not None:

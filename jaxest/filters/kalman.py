@@ -9,46 +9,36 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
+from jaxest.filters.base import (
+    AbstractGaussianFilter,
+    Covariance,
+    InformationMatrix,
+    StepOutput,
+)
 from jaxest.filters.common import (
     LOG_2PI,
-    StepOutput,
-    check_prior,
     covariance_predict,
     covariance_step,
     masked_measurement,
-    pack_result,
     step_status,
 )
 from jaxest.linalg import chol_inverse, inv_spd, logdet_chol, symmetrize
 
 
-class CovarianceState(eqx.Module):
-    """x(k|k-1), P(k|k-1) and the time index k."""
-
-    mean: Float[Array, " n"]
-    cov: Float[Array, "n n"]
-    k: Int[Array, ""]
-
-
-class KalmanFilter(eqx.Module):
+class KalmanFilter(AbstractGaussianFilter):
     """The conventional covariance-form Kalman filter (EKF on nonlinear models) with the Joseph
     form P+ = (I - K H) P (I - K H)^T + K R K^T of the measurement update."""
 
-    def init(self, model, prior) -> CovarianceState:
-        prior = check_prior(prior)
-        return CovarianceState(prior.mean, prior.cov, jnp.zeros((), jnp.int32))
+    factor_type = Covariance
 
-    def step(self, model, state: CovarianceState, y, u):
-        x_next, P_next, (x_post, P_post, e, S, loglik) = covariance_step(
-            model, state.mean, state.cov, y, u, state.k
-        )
+    def update_predict(self, model, x, factor: Covariance, k, y, u):
+        P = factor.matrix
+        x_next, P_next, (x_post, P_post, e, S, loglik) = covariance_step(model, x, P, y, u, k)
         status = step_status(x_next, P_next, loglik, cov=P_post)
-        out = StepOutput(state.mean, state.cov, x_post, P_post, e, S, loglik, status)
-        return CovarianceState(x_next, P_next, state.k + 1), out
-
-    result = staticmethod(pack_result)
+        out = StepOutput(x, P, x_post, P_post, e, S, loglik, status)
+        return x_next, Covariance(P_next), out
 
 
 def information_loglik(e, R_inv, b, P_post, logdet_R, logdet_prior, logdet_post, num_observed):
@@ -90,18 +80,16 @@ def information_update(info_prior, P, logdet_prior, meas) -> InformationUpdate:
     return InformationUpdate(P_post, info_post, post_chol, HtR_inv, b, S, loglik)
 
 
-class EKF(eqx.Module):
+class EKF(AbstractGaussianFilter):
     """The paper's EKF, eqs 6-10: covariance-mode time update
     P(k+1|k) = F P(k|k) F^T + G Q G^T (eq 7) and information-mode measurement update
     P(k|k)^-1 = P(k|k-1)^-1 + H^T R^-1 H (eq 9), K = P(k|k) H^T R^-1 (eq 10),
     x(k|k) = x(k|k-1) + K (y - h(x(k|k-1))) (eq 8). Full (correlated) R is allowed."""
 
-    def init(self, model, prior) -> CovarianceState:
-        prior = check_prior(prior)
-        return CovarianceState(prior.mean, prior.cov, jnp.zeros((), jnp.int32))
+    factor_type = Covariance
 
-    def step(self, model, state: CovarianceState, y, u):
-        x, P, k = state.mean, state.cov, state.k
+    def update_predict(self, model, x, factor: Covariance, k, y, u):
+        P = factor.matrix
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)
         P_chol = jnp.linalg.cholesky(P)
@@ -110,41 +98,29 @@ class EKF(eqx.Module):
         x_next, P_next = covariance_predict(model, x_post, upd.P_post, u, k)  # eqs 6-7
         status = step_status(x_next, P_next, upd.loglik, cov=upd.P_post)
         out = StepOutput(x, P, x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
-        return CovarianceState(x_next, P_next, k + 1), out
-
-    result = staticmethod(pack_result)
+        return x_next, Covariance(P_next), out
 
 
-class InformationState(eqx.Module):
-    """Information vector z = Y x(k|k-1) and information matrix Y = P(k|k-1)^-1."""
-
-    info_vector: Float[Array, " n"]
-    info_matrix: Float[Array, "n n"]
-    k: Int[Array, ""]
-
-
-class InformationFilter(eqx.Module):
+class InformationFilter(AbstractGaussianFilter):
     """The information filter: propagates Y = P^-1 and z = Y x.
 
     Measurement update Y+ = Y- + H^T R^-1 H, z+ = z- + H^T R^-1 (y - h(x-) + H x-); time update
     by the Woodbury form Y(k+1|k) = A - A G (Q^-1 + G^T A G)^-1 G^T A, A = F^-T Y(k|k) F^-1,
     which needs F invertible and Q positive definite (Anderson & Moore, Optimal Filtering, 6.3).
+    The state holds x(k|k-1) beside Y; the information vector z = Y x is formed where used.
     """
 
-    def init(self, model, prior) -> InformationState:
-        prior = check_prior(prior)
-        Y = inv_spd(prior.cov)
-        return InformationState(Y @ prior.mean, Y, jnp.zeros((), jnp.int32))
+    factor_type = InformationMatrix
+    needs_positive_definite_Q = True
 
-    def step(self, model, state: InformationState, y, u):
-        Y, k = state.info_matrix, state.k
+    def update_predict(self, model, x, factor: InformationMatrix, k, y, u):
+        Y = factor.info
         Y_chol = jnp.linalg.cholesky(Y)
         P = chol_inverse(Y_chol)
-        x = P @ state.info_vector
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)
         upd = information_update(Y, P, -logdet_chol(Y_chol), meas)
-        x_post = upd.P_post @ (state.info_vector + upd.HtR_inv @ (meas.H @ x) + upd.b)
+        x_post = upd.P_post @ (Y @ x + upd.HtR_inv @ (meas.H @ x) + upd.b)
         x_next, F, G, Q = model.transition(x_post, u, k)
         F_inv_T = jnp.linalg.inv(F).T
         A = symmetrize(F_inv_T @ upd.info_post @ F_inv_T.T)
@@ -152,9 +128,7 @@ class InformationFilter(eqx.Module):
         Y_next = symmetrize(A - A @ G @ jnp.linalg.solve(inner, G.T @ A))
         status = step_status(x_next, Y_next, upd.loglik, cov_factor=upd.post_chol)
         out = StepOutput(x, P, x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
-        return InformationState(Y_next @ x_next, Y_next, k + 1), out
-
-    result = staticmethod(pack_result)
+        return x_next, InformationMatrix(Y_next), out
 
 
-__all__ = ["EKF", "CovarianceState", "InformationFilter", "KalmanFilter"]
+__all__ = ["EKF", "InformationFilter", "KalmanFilter"]

@@ -8,27 +8,11 @@ innovation factor Se (S_e = Se Se^T), the normalised gain Kbar = K Se and S(k|k)
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
-from jaxest.filters.common import (
-    StepOutput,
-    check_prior,
-    gaussian_loglik,
-    masked_measurement,
-    pack_result,
-    step_status,
-)
-
-
-class SqrtState(eqx.Module):
-    """x(k|k-1), lower factor S of P(k|k-1) and the time index k."""
-
-    mean: Float[Array, " n"]
-    chol: Float[Array, "n n"]
-    k: Int[Array, ""]
+from jaxest.filters.base import AbstractGaussianFilter, CholeskyFactor, StepOutput
+from jaxest.filters.common import gaussian_loglik, masked_measurement, step_status
 
 
 def lower_factor(pre_array_transposed):
@@ -36,15 +20,18 @@ def lower_factor(pre_array_transposed):
     return jnp.linalg.qr(pre_array_transposed, mode="r").T
 
 
-class SquareRootKF(eqx.Module):
-    """Square-root covariance Kalman filter (EKF on nonlinear models). Q and R positive definite."""
+class SquareRootKF(AbstractGaussianFilter):
+    """Square-root covariance Kalman filter (EKF on nonlinear models). Q and R positive definite.
 
-    def init(self, model, prior) -> SqrtState:
-        prior = check_prior(prior)
-        return SqrtState(prior.mean, jnp.linalg.cholesky(prior.cov), jnp.zeros((), jnp.int32))
+    Saved with ``SaveAt(fields=(..., "factor", "predicted_factor"))`` it also returns the
+    Cholesky factors S(k|k) and S(k|k-1) it propagates.
+    """
 
-    def step(self, model, state: SqrtState, y, u):
-        x, S, k = state.mean, state.chol, state.k
+    factor_type = CholeskyFactor
+    needs_positive_definite_Q = True
+
+    def update_predict(self, model, x, factor: CholeskyFactor, k, y, u):
+        S = factor.chol
         n = x.shape[0]
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)
@@ -61,7 +48,8 @@ class SquareRootKF(eqx.Module):
         S_next = lower_factor(jnp.concatenate([S_post.T @ F.T, jnp.linalg.cholesky(Q).T @ G.T]))
         P_post = S_post @ S_post.T
         status = step_status(x_next, S_next, loglik, positive=jnp.all(jnp.diag(S_post) != 0))
-        out = StepOutput(x, S @ S.T, x_post, P_post, meas.innovation, Se @ Se.T, loglik, status)
-        return SqrtState(x_next, S_next, k + 1), out
-
-    result = staticmethod(pack_result)
+        out = StepOutput(
+            x, S @ S.T, x_post, P_post, meas.innovation, Se @ Se.T, loglik, status,
+            predicted_factor=factor, factor=CholeskyFactor(S_post),
+        )  # fmt: skip
+        return x_next, CholeskyFactor(S_next), out

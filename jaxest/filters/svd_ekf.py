@@ -6,7 +6,7 @@
   [L^T H U; D^-1] (eq 18-19) gives U+ = U V'', D+ = D''^-1, and K = U+ D+^2 U+^T H^T L L^T
   (eq 24). The paper gives no likelihood; it follows here from the same factors by the
   determinant lemma (see :func:`~jaxest.filters.kalman.information_loglik`).
-- :class:`ImprovedSVDKF`: Kulikova & Tsyganova's covariance-form SVD filter (NOTES.md section 1):
+- :class:`ImprovedSVDKF`: Kulikova & Tsyganova's covariance-form SVD filter (docs/papers/svd_ekf.md):
   no inverse of D or R, PSD Q allowed, Joseph-form covariance and the likelihood from the
   innovation's own SVD.
 
@@ -19,20 +19,14 @@ are finite and equal the EKF's.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
 
-from jaxest.filters.common import (
-    LOG_2PI,
-    StepOutput,
-    check_prior,
-    covariance_step,
-    masked_measurement,
-    pack_result,
-    step_status,
-)
+from jaxest.filters.base import AbstractGaussianFilter, StepOutput, SVDFactor
+from jaxest.filters.common import LOG_2PI, covariance_step, masked_measurement, step_status
 from jaxest.filters.kalman import information_loglik
 from jaxest.linalg import (
     cov_from_factor,
@@ -43,15 +37,6 @@ from jaxest.linalg import (
     right_svd,
     symmetrize,
 )
-
-
-class SVDState(eqx.Module):
-    """x(k|k-1), factors U, D of P(k|k-1) = U diag(D)^2 U^T, and the time index k."""
-
-    mean: Float[Array, " n"]
-    U: Float[Array, "n n"]
-    D: Float[Array, " n"]
-    k: Int[Array, ""]
 
 
 def svd_time_update(U, D, F, noise_rows):
@@ -87,11 +72,11 @@ def paper_svd_step(model, x, U, D, y, u, k):
     S = symmetrize(meas.H @ cov_from_factor(U, D) @ meas.H.T + meas.R)
     x_next, F, G, Q = model.transition(x_post, u, k)
     U_next, D_next = svd_time_update(U_post, D_post, F, sqrt_rows(Q) @ G.T)
-    return x_next, U_next, D_next, (x_post, P_post, meas.innovation, S, loglik)
+    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik)
 
 
 def improved_svd_step(model, x, U, D, y, u, k):
-    """One step of Kulikova & Tsyganova's covariance-form SVD filter (NOTES.md section 1)."""
+    """One step of Kulikova & Tsyganova's covariance-form SVD filter (docs/papers/svd_ekf.md)."""
     y_pred, H, R = model.observation(x, u, k)
     meas = masked_measurement(y, y_pred, H, R)
     R_rows = sqrt_rows(meas.R)  # D_R^1/2 Q_R^T
@@ -111,12 +96,7 @@ def improved_svd_step(model, x, U, D, y, u, k):
     S = symmetrize((Q_Re * Re) @ Q_Re.T)
     x_next, F, G, Q = model.transition(x_post, u, k)
     U_next, D_next = svd_time_update(U_post, D_post, F, sqrt_rows(Q) @ G.T)
-    return (
-        x_next,
-        U_next,
-        D_next,
-        (x_post, cov_from_factor(U_post, D_post), meas.innovation, S, loglik),
-    )
+    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik)
 
 
 @eqx.filter_custom_jvp
@@ -136,47 +116,47 @@ def _factored_step_jvp(primals, tangents, *, primal):
     _, (dx_next, dP_next, d_outputs) = eqx.filter_jvp(
         ref, (model, x, cov_from_factor(U, D), y, u), (t_model, zeros(t_x, x), dP, t_y, t_u)
     )
-    x_next, U_next, D_next, outputs = out
+    x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik) = out
     dU_next, dD_next = cov_tangent_to_factor(U_next, D_next, symmetrize(dP_next))
-    d_outputs = jax.tree.map(zeros, d_outputs, outputs, is_leaf=lambda t: t is None)
+    dx_post, dP_post, de, dS, dloglik = d_outputs
+    dU_post, dD_post = cov_tangent_to_factor(U_post, D_post, symmetrize(dP_post))
+    d_outputs = (dx_post, dU_post, dD_post, de, dS, dloglik)
+    d_outputs = jax.tree.map(
+        zeros, d_outputs, (x_post, U_post, D_post, e, S, loglik), is_leaf=lambda t: t is None
+    )
     return out, (dx_next, dU_next, dD_next, d_outputs)
 
 
-def _svd_filter_step(primal, model, state: SVDState, y, u):
-    x_next, U_next, D_next, (x_post, P_post, e, S, loglik) = factored_step(
-        model, state.mean, state.U, state.D, y, u, state.k, primal=primal
-    )
-    status = step_status(x_next, U_next, D_next, P_post, loglik, positive=jnp.all(D_next > 0))
-    P_prior = cov_from_factor(state.U, state.D)
-    out = StepOutput(state.mean, P_prior, x_post, P_post, e, S, loglik, status)
-    return SVDState(x_next, U_next, D_next, state.k + 1), out
+class AbstractSVDFilter(AbstractGaussianFilter):
+    """An SVD filter: P = U diag(D)^2 U^T propagated through its factors by the class-level
+    ``factored_step`` (one of :func:`paper_svd_step`, :func:`improved_svd_step`), differentiated
+    at the covariance level (module docstring). Saved with ``SaveAt(fields=(..., "factor"))``
+    it also returns the factors U, D of P(k|k) and P(k|k-1)."""
+
+    factor_type = SVDFactor
+    svd_step: ClassVar[staticmethod]
+
+    def update_predict(self, model, x, factor: SVDFactor, k, y, u):
+        x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik) = factored_step(
+            model, x, factor.U, factor.D, y, u, k, primal=self.svd_step
+        )
+        P_post = cov_from_factor(U_post, D_post)
+        status = step_status(x_next, U_next, D_next, P_post, loglik, positive=jnp.all(D_next > 0))
+        out = StepOutput(
+            x, factor.cov, x_post, P_post, e, S, loglik, status,
+            predicted_factor=factor, factor=SVDFactor(U_post, D_post),
+        )  # fmt: skip
+        return x_next, SVDFactor(U_next, D_next), out
 
 
-def _svd_init(prior) -> SVDState:
-    prior = check_prior(prior)
-    U, D = factor_psd(prior.cov)
-    return SVDState(prior.mean, U, D, jnp.zeros((), jnp.int32))
-
-
-class SVDEKF(eqx.Module):
+class SVDEKF(AbstractSVDFilter):
     """The paper's SVD-based EKF (eqs 11-25). Q and R positive definite (R^-1 is formed)."""
 
-    def init(self, model, prior) -> SVDState:
-        return _svd_init(prior)
-
-    def step(self, model, state: SVDState, y, u):
-        return _svd_filter_step(paper_svd_step, model, state, y, u)
-
-    result = staticmethod(pack_result)
+    svd_step: ClassVar[staticmethod] = staticmethod(paper_svd_step)
+    needs_positive_definite_Q = True
 
 
-class ImprovedSVDKF(eqx.Module):
-    """Kulikova & Tsyganova's improved covariance-form SVD filter (NOTES.md section 1)."""
+class ImprovedSVDKF(AbstractSVDFilter):
+    """Kulikova & Tsyganova's improved covariance-form SVD filter (docs/papers/svd_ekf.md)."""
 
-    def init(self, model, prior) -> SVDState:
-        return _svd_init(prior)
-
-    def step(self, model, state: SVDState, y, u):
-        return _svd_filter_step(improved_svd_step, model, state, y, u)
-
-    result = staticmethod(pack_result)
+    svd_step: ClassVar[staticmethod] = staticmethod(improved_svd_step)

@@ -15,8 +15,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from jaxest.filters.base import FilterResult
 from jaxest.linalg import cho_solve_lower, symmetrize
-from jaxest.run import FilterResult, check_finite_status
+from jaxest.status import finite_status
 
 
 class SmootherResult(eqx.Module):
@@ -27,8 +28,23 @@ class SmootherResult(eqx.Module):
     status: Int[Array, " T"]
 
 
-def rts_smooth(model, result: FilterResult, inputs=None) -> SmootherResult:
-    """Smooth a :class:`~jaxest.run.FilterResult` of ``model`` (``inputs`` as given to the filter)."""
+NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
+
+
+def rts_smooth(model, result: FilterResult, *, inputs=None) -> SmootherResult:
+    """Smooth a :class:`~jaxest.FilterResult` of ``model`` (``inputs`` as given to the filter).
+
+    The result must hold the filtered and predicted means and covariances and the status
+    (the default :class:`~jaxest.SaveAt`). Compiled once per model structure and shapes.
+    """
+    missing = [name for name in NEEDED if getattr(result, name) is None]
+    if missing:
+        raise ValueError(f"result: rts_smooth needs {missing}, which were not saved")
+    return _rts_smooth(model, result, inputs)
+
+
+@eqx.filter_jit
+def _rts_smooth(model, result: FilterResult, inputs) -> SmootherResult:
     T = result.mean.shape[0]
     steps = jnp.arange(T - 1)
     u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
@@ -41,7 +57,7 @@ def rts_smooth(model, result: FilterResult, inputs=None) -> SmootherResult:
         gain = cho_solve_lower(chol, F @ cov).T
         mean_s = mean + gain @ (mean_next - pred_mean_next)
         cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)
-        status = check_finite_status(mean_s, cov_s)
+        status = finite_status(mean_s, cov_s)
         return (mean_s, cov_s), (mean_s, cov_s, status)
 
     last = (result.mean[-1], result.cov[-1])
@@ -54,7 +70,7 @@ def rts_smooth(model, result: FilterResult, inputs=None) -> SmootherResult:
         u_seq,
     )
     _, (means, covs, status) = jax.lax.scan(backward, last, args, reverse=True)
-    last_status = check_finite_status(last[1])
+    last_status = finite_status(last[1])
     return SmootherResult(
         jnp.concatenate([means, last[0][None]]),
         jnp.concatenate([covs, last[1][None]]),

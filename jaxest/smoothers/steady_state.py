@@ -24,12 +24,20 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxest.checks import check_prior
-from jaxest.filters.common import StepOutput, gaussian_loglik, pack_result
+from jaxest.checks import check_gaussian_prior
+from jaxest.filters.base import (
+    AbstractCovarianceFactor,
+    AbstractGaussianFilter,
+    GaussianState,
+    StepOutput,
+)
+from jaxest.filters.common import gaussian_loglik
 from jaxest.linalg import symmetrize
 from jaxest.models import LinearGaussian
+from jaxest.priors import Gaussian
 from jaxest.riccati import solve_dare
-from jaxest.run import Gaussian, check_finite_status, run
+from jaxest.run import run
+from jaxest.status import finite_status
 
 
 class SteadyStateGain(eqx.Module):
@@ -84,23 +92,26 @@ def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
     ``solve_dare(Phi^T, H^T, Gamma Q Gamma^T, R)``, then K (eq 4) and Q_eps."""
     check_time_invariant(model)
     Phi, H, R = model.F, model.H, model.R
-    G = model.noise_gain(0)
+    G, _ = model.process_noise(None, None, 0)
     Sigma = solve_dare(Phi.T, H.T, symmetrize(G @ model.Q @ G.T), R)
     Qe = symmetrize(H @ Sigma @ H.T + R)
     K = jnp.linalg.solve(Qe, H @ Sigma).T
     return SteadyStateGain(Phi, H, Sigma, K, Qe)
 
 
-class SteadyState(eqx.Module):
-    """x(t|t-1), the gain and the Cholesky factor of the innovation covariance (both constant,
-    computed once in ``init``)."""
+class SteadyStateFactor(AbstractCovarianceFactor):
+    """The steady-state filter's "factor" of P(t|t-1): the constant gain and the Cholesky factor
+    of the innovation covariance, computed once in ``init``; ``cov`` is Sigma."""
 
-    mean: Float[Array, " n"]
     gain: SteadyStateGain
     innovation_chol: Float[Array, "m m"]
 
+    @property
+    def cov(self):
+        return self.gain.Sigma
 
-class SteadyStateKalmanFilter(eqx.Module):
+
+class SteadyStateKalmanFilter(AbstractGaussianFilter):
     """Lemma 1 / eq 3: the Kalman filter with its steady-state gain, x(t|t) = x(t|t-1) +
     K (y(t) - H x(t|t-1)), x(t+1|t) = Phi x(t|t), i.e. x(t+1|t+1) = Psi_f x(t|t) + K y(t+1).
 
@@ -111,27 +122,29 @@ class SteadyStateKalmanFilter(eqx.Module):
     """
 
     gain: SteadyStateGain | None = None
+    factor_type = SteadyStateFactor
 
-    def init(self, model, prior: Gaussian) -> SteadyState:
-        prior = check_prior(prior)
+    def init(self, model, prior: Gaussian) -> GaussianState:
+        check_gaussian_prior(prior)
         gain = steady_state_gain(model) if self.gain is None else self.gain
-        return SteadyState(prior.mean, gain, jnp.linalg.cholesky(gain.innovation_cov))
+        factor = SteadyStateFactor(gain, jnp.linalg.cholesky(gain.innovation_cov))
+        return GaussianState(prior.mean, factor, jnp.zeros((), jnp.result_type(prior.mean)))
 
-    def step(self, model, state: SteadyState, y, u):
-        g = state.gain
-        e = y - g.H @ state.mean
-        x_post = state.mean + g.K @ e
-        S_chol = state.innovation_chol
+    def check(self, model, ys, inputs, prior) -> None:
+        check_time_invariant(model)
+        super().check(model, ys, inputs, prior)
+
+    def update_predict(self, model, x, factor: SteadyStateFactor, k, y, u):
+        g = factor.gain
+        e = y - g.H @ x
+        x_post = x + g.K @ e
+        S_chol = factor.innovation_chol
         z = jax.scipy.linalg.solve_triangular(S_chol, e, lower=True)
         loglik = gaussian_loglik(z, S_chol, e.shape[0])
         x_next = g.Phi @ x_post
-        status = check_finite_status(x_next, loglik)
-        out = StepOutput(
-            state.mean, g.Sigma, x_post, g.filtered_cov, e, g.innovation_cov, loglik, status
-        )
-        return SteadyState(x_next, g, S_chol), out
-
-    result = staticmethod(pack_result)
+        status = finite_status(x_next, loglik)
+        out = StepOutput(x, g.Sigma, x_post, g.filtered_cov, e, g.innovation_cov, loglik, status)
+        return x_next, factor, out
 
 
 class ArmaInnovationModel(eqx.Module):
@@ -227,7 +240,7 @@ def steady_state_smooth(
     (eq 3) forward, then x(t|N) = x(t|t) + sum_{i=1}^{N-t} K_i eps(t+i) by one backward pass.
     ``gain`` is :func:`steady_state_gain` of the model (solved here when not given)."""
     gain = steady_state_gain(model) if gain is None else gain
-    filtered = run(SteadyStateKalmanFilter(gain), model, ys, None, prior)
+    filtered = run(SteadyStateKalmanFilter(gain), model, ys, prior=prior)
     mean = filtered.mean + backward_gain_sum(gain, filtered.innovation)
     return SteadyStateSmootherResult(mean, filtered.mean, filtered.innovation)
 

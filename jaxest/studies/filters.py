@@ -72,7 +72,7 @@ def standard_errors(model, ys, prior) -> np.ndarray:
     information of the total log-likelihood of the batch ``ys``."""
 
     q = model.Q.shape[0]
-    mean_nll = neg_loglik(KalmanFilter(), ys, prior)  # per run and step
+    mean_nll = neg_loglik(KalmanFilter(), ys, prior=prior)  # per run and step
 
     def total_nll(theta):
         Q, R = (from_unconstrained(t, "log_diagonal") for t in (theta[:q], theta[q:]))
@@ -83,7 +83,7 @@ def standard_errors(model, ys, prior) -> np.ndarray:
 
 
 def rmse(model, ys, states, prior) -> float:
-    means = jax.vmap(lambda y: je.run(SVDEKF(), model, y, None, prior).mean)(ys)
+    means = jax.vmap(lambda y: je.run(SVDEKF(), model, y, prior=prior).mean)(ys)
     return float(jnp.sqrt(jnp.mean((means - states) ** 2)))
 
 
@@ -99,14 +99,14 @@ def tuning(runs: int, num_steps: int, seed: int, fit_steps: int) -> dict:
     fits = {
         "ml": fit(
             wrong,
-            neg_loglik(SVDEKF(), train.y, prior),
+            neg_loglik(SVDEKF(), train.y, prior=prior),
             params,
             optimizer=optimizer,
             num_steps=fit_steps,
         ),
         "supervised": fit(
             wrong,
-            supervised_mse(SVDEKF(), train.y, train.states, prior),
+            supervised_mse(SVDEKF(), train.y, train.states, prior=prior),
             params,
             optimizer=optimizer,
             num_steps=fit_steps,

@@ -154,7 +154,7 @@ def scaling(sizes, steps, dt, progress):
         ys = jax.random.normal(key, (steps, N, system.obs_dim), mean0.dtype)
         filt = NetworkFilter(structure, ss.gains, dt)
         runner = jax.jit(
-            lambda ys: run_estimator(filt, system, ys, None, Gaussian(mean0, cov0)).mean
+            lambda ys: run_estimator(filt, system, ys, prior=Gaussian(mean0, cov0)).mean
         )
         _, compile_run = _timed(lambda: runner(ys))
         _, run_seconds = _timed(lambda: runner(ys))

@@ -35,6 +35,6 @@ def problem(d: float, dtype=jnp.float64):
 def posterior_error(Filter, d: float, dtype=jnp.float64) -> float:
     """Relative (Frobenius) error of the filter's P+ against the closed form (NaN if not finite)."""
     model, prior, ys = problem(d, dtype)
-    P = np.asarray(je.run(Filter(), model, ys, None, prior).cov[0], np.float64)
+    P = np.asarray(je.run(Filter(), model, ys, prior=prior).cov[0], np.float64)
     exact = exact_posterior(d)
     return float(np.linalg.norm(P - exact) / np.linalg.norm(exact))

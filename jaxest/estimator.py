@@ -1,0 +1,122 @@
+"""The estimator protocol: abstract types every filter, smoother pass and observer subclasses.
+
+An estimator is an ``eqx.Module`` (its hyperparameters are fields) with
+
+- ``init(model, prior) -> state``;
+- ``step(model, state, k, y_k, u_k, key_k) -> (state, output)``, pure: no Python branching on
+  values, so it runs under ``jit``, ``vmap``, ``grad`` and inside ``lax.scan``. ``k`` is the
+  step index and ``key_k`` this step's PRNG key (``None`` unless the caller gave ``key=``):
+  the driver owns time and randomness, states hold neither;
+- ``result(outputs, final_state) -> result``: packs the stacked outputs (those the caller chose
+  to save, the others ``None``) into the estimator's result Module;
+- ``check(model, ys, inputs, prior)``: argument checks run before anything is traced.
+
+Each step's ``output`` has an integer ``status`` field (bits of a :class:`~jaxest.StatusFlag`).
+:func:`jaxest.run` drives any estimator over a sequence; users with their own loop (closed-loop
+control, online use) call ``step`` themselves.
+
+An estimator whose steps compose associatively subclasses :class:`AbstractAssociativeEstimator`
+instead: it describes each step as an element and gives the combination rule, and ``run`` then
+uses ``lax.associative_scan`` (O(log T) depth) -- its ``init``/``step`` come from the same
+pieces, so the sequential and parallel paths share one implementation.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Int
+
+
+class AbstractResult(eqx.Module):
+    """What every estimator's result has beside its own fields.
+
+    ``status`` holds the flags of each step (``None`` where the caller did not save it);
+    ``any_status`` is their bitwise OR over the whole run, always kept; ``final_state`` is the
+    estimator's state after the last step, from which filtering resumes on new data
+    (``run(..., state=result.final_state, k0=T)``); ``saved`` holds the caller's
+    ``SaveAt(fn=...)`` of each step's output, or ``None``.
+    """
+
+    final_state: eqx.AbstractVar[Any]
+    status: eqx.AbstractVar[Int[Array, " T"] | None]
+    any_status: eqx.AbstractVar[Int[Array, ""] | None]
+    saved: eqx.AbstractVar[Any]
+
+    @property
+    def ok(self) -> jax.Array:
+        """True where every step of the run finished with status OK."""
+        return self.any_status == 0
+
+
+class AbstractEstimator(eqx.Module):
+    """Root of every estimator (module docstring)."""
+
+    #: True for estimators that sample: ``run`` then requires ``key=``
+    needs_key: ClassVar[bool] = False
+    #: the output fields saved when the caller does not choose (``None``: all of them)
+    default_fields: ClassVar[tuple[str, ...] | None] = None
+
+    @abc.abstractmethod
+    def init(self, model, prior):
+        """The state before the first measurement."""
+
+    @abc.abstractmethod
+    def step(self, model, state, k, y, u, key):
+        """Process measurement ``y`` (index ``k``, input ``u``): ``(next state, output)``."""
+
+    @abc.abstractmethod
+    def result(self, outputs, final_state) -> AbstractResult:
+        """The result Module from the stacked outputs and the final state."""
+
+    def check(self, model, ys, inputs, prior) -> None:
+        """Raise ``ValueError`` naming the argument for malformed arguments (default: none)."""
+
+
+class AbstractAssociativeEstimator(AbstractEstimator):
+    """An estimator whose steps are elements combined by an associative operation.
+
+    ``prior_element(model, prior)`` describes the prior, ``element(model, k, y, u)`` one step,
+    ``combine(earlier, later)`` composes two consecutive stretches, and
+    ``output(model, prefix, k)`` reads the step output from the combination of the prior with
+    elements 0..k. ``combine`` must be associative; ``run`` then may evaluate all prefixes with
+    ``lax.associative_scan``. The sequential ``init``/``step`` below use the same pieces.
+    """
+
+    @abc.abstractmethod
+    def prior_element(self, model, prior):
+        """The element of the prior."""
+
+    @abc.abstractmethod
+    def element(self, model, k, y, u):
+        """The element of step ``k`` (no dependence on other steps)."""
+
+    @abc.abstractmethod
+    def combine(self, earlier, later):
+        """The element of ``earlier`` followed by ``later`` (associative)."""
+
+    @abc.abstractmethod
+    def output(self, model, prefix, k):
+        """The output of step ``k`` from the prefix element (prior, 0, ..., k)."""
+
+    def init(self, model, prior):
+        return self.prior_element(model, prior)
+
+    def step(self, model, state, k, y, u, key):
+        prefix = self.combine(state, self.element(model, k, y, u))
+        return prefix, self.output(model, prefix, k)
+
+
+def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, ks, ys, us):
+    """All step outputs and the final prefix of an associative estimator, in O(log T) depth."""
+    elements = jax.vmap(lambda k, y, u: estimator.element(model, k, y, u))(ks, ys, us)
+    first = estimator.prior_element(model, prior)
+    stacked = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, elements)
+    prefixes = jax.lax.associative_scan(jax.vmap(estimator.combine), stacked)
+    prefixes = jax.tree.map(lambda a: a[1:], prefixes)
+    outputs = jax.vmap(lambda p, k: estimator.output(model, p, k))(prefixes, ks)
+    return outputs, jax.tree.map(lambda a: a[-1], prefixes)

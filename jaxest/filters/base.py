@@ -1,0 +1,192 @@
+"""The Gaussian filter family: its state, step output, result, and abstract base.
+
+Every Gaussian filter carries x(k|k-1), its predicted covariance in the filter's own
+representation (a :class:`AbstractCovarianceFactor`: the covariance itself, a Cholesky factor,
+SVD factors U, D or the information matrix) and the running log-likelihood. A concrete filter is
+:class:`AbstractGaussianFilter` plus a class-level factor type and one method, ``update_predict``:
+the prior check, ``init``, ``check`` and ``result`` are written once, here.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from jaxest.checks import check_gaussian_arguments, check_gaussian_prior
+from jaxest.estimator import AbstractEstimator, AbstractResult
+from jaxest.linalg import chol_inverse, cov_from_factor, factor_psd, inv_spd
+
+
+class AbstractCovarianceFactor(eqx.Module):
+    """A covariance P held in some factored form; ``cov`` gives P itself. Concrete factors
+    also have a classmethod ``from_cov(P)``, which :meth:`AbstractGaussianFilter.init` uses."""
+
+    @property
+    @abc.abstractmethod
+    def cov(self) -> Float[Array, "n n"]:
+        """P."""
+
+
+class Covariance(AbstractCovarianceFactor):
+    """P itself."""
+
+    matrix: Float[Array, "n n"]
+
+    @classmethod
+    def from_cov(cls, P):
+        return cls(P)
+
+    @property
+    def cov(self):
+        return self.matrix
+
+
+class CholeskyFactor(AbstractCovarianceFactor):
+    """Lower-triangular S with P = S S^T."""
+
+    chol: Float[Array, "n n"]
+
+    @classmethod
+    def from_cov(cls, P):
+        return cls(jnp.linalg.cholesky(P))
+
+    @property
+    def cov(self):
+        return self.chol @ self.chol.T
+
+
+class SVDFactor(AbstractCovarianceFactor):
+    """P = U diag(D)^2 U^T, U orthogonal, D >= 0 (the SVD filters' factors)."""
+
+    U: Float[Array, "n n"]
+    D: Float[Array, " n"]
+
+    @classmethod
+    def from_cov(cls, P):
+        return cls(*factor_psd(P))
+
+    @property
+    def cov(self):
+        return cov_from_factor(self.U, self.D)
+
+
+class InformationMatrix(AbstractCovarianceFactor):
+    """Y = P^-1 (the information filter's form)."""
+
+    info: Float[Array, "n n"]
+
+    @classmethod
+    def from_cov(cls, P):
+        return cls(inv_spd(P))
+
+    @property
+    def cov(self):
+        return chol_inverse(jnp.linalg.cholesky(self.info))
+
+
+class GaussianState(eqx.Module):
+    """x(k|k-1), P(k|k-1) in the filter's factor, and log p(y_0, ..., y_{k-1})."""
+
+    mean: Float[Array, " n"]
+    factor: AbstractCovarianceFactor
+    loglik: Float[Array, ""]
+
+
+class StepOutput(eqx.Module):
+    """What one filter step emits (stacked over time by the driver; unsaved fields ``None``)."""
+
+    predicted_mean: Float[Array, " n"] | None
+    predicted_cov: Float[Array, "n n"] | None
+    mean: Float[Array, " n"] | None
+    cov: Float[Array, "n n"] | None
+    innovation: Float[Array, " m"] | None
+    innovation_cov: Float[Array, "m m"] | None
+    loglik: Float[Array, ""] | None
+    status: Int[Array, ""] | None
+    predicted_factor: AbstractCovarianceFactor | None = None
+    factor: AbstractCovarianceFactor | None = None
+
+
+class FilterResult(AbstractResult):
+    """What every Gaussian filter returns (fields the caller did not save are ``None``).
+
+    ``predicted_*`` are the one-step predictions x(k|k-1), P(k|k-1) used to process y_k;
+    ``mean``/``cov`` are the filtered x(k|k), P(k|k). ``innovation`` is y_k - h(x(k|k-1)) with
+    NaN (missing) entries set to zero; ``innovation_cov`` its covariance. ``loglik_terms`` are the
+    Gaussian log-likelihood terms of the observed entries; ``status`` holds
+    :class:`~jaxest.Status` bits per step. Factored filters also give their factors
+    (``factor``, ``predicted_factor``) when saved with ``SaveAt(fields=(..., "factor"))``.
+    """
+
+    final_state: GaussianState
+    status: Int[Array, " T"] | None = None
+    any_status: Int[Array, ""] | None = None
+    saved: object = None
+    mean: Float[Array, "T n"] | None = None
+    cov: Float[Array, "T n n"] | None = None
+    predicted_mean: Float[Array, "T n"] | None = None
+    predicted_cov: Float[Array, "T n n"] | None = None
+    innovation: Float[Array, "T m"] | None = None
+    innovation_cov: Float[Array, "T m m"] | None = None
+    loglik_terms: Float[Array, " T"] | None = None
+    factor: AbstractCovarianceFactor | None = None
+    predicted_factor: AbstractCovarianceFactor | None = None
+
+    @property
+    def loglik(self) -> Float[Array, ""]:
+        """Total log-likelihood log p(y_0, ..., y_{T-1}) (kept whatever was saved)."""
+        return self.final_state.loglik
+
+
+class AbstractGaussianFilter(AbstractEstimator):
+    """A Gaussian filter: ``factor_type`` says how P is held, ``update_predict`` is the step.
+
+    ``needs_positive_definite_Q``: the filter factors or inverts Q (checked before tracing).
+    """
+
+    factor_type: ClassVar[type[AbstractCovarianceFactor]]
+    needs_positive_definite_Q: ClassVar[bool] = False
+    default_fields: ClassVar[tuple[str, ...]] = (
+        "predicted_mean", "predicted_cov", "mean", "cov",
+        "innovation", "innovation_cov", "loglik", "status",
+    )  # fmt: skip
+
+    @abc.abstractmethod
+    def update_predict(self, model, x, factor, k, y, u) -> tuple:
+        """Measurement update with y_k at (x(k|k-1), P(k|k-1)), then prediction to k+1.
+
+        Returns ``(x(k+1|k), factor(k+1|k), output)`` with ``output`` a :class:`StepOutput`.
+        """
+
+    def init(self, model, prior) -> GaussianState:
+        check_gaussian_prior(prior)
+        zero = jnp.zeros((), jnp.result_type(prior.mean))
+        return GaussianState(prior.mean, self.factor_type.from_cov(prior.cov), zero)
+
+    def step(self, model, state: GaussianState, k, y, u, key=None):
+        x_next, factor_next, output = self.update_predict(model, state.mean, state.factor, k, y, u)
+        return GaussianState(x_next, factor_next, state.loglik + output.loglik), output
+
+    def result(self, outputs: StepOutput, final_state: GaussianState) -> FilterResult:
+        return FilterResult(
+            mean=outputs.mean,
+            cov=outputs.cov,
+            predicted_mean=outputs.predicted_mean,
+            predicted_cov=outputs.predicted_cov,
+            innovation=outputs.innovation,
+            innovation_cov=outputs.innovation_cov,
+            loglik_terms=outputs.loglik,
+            status=outputs.status,
+            final_state=final_state,
+            factor=outputs.factor,
+            predicted_factor=outputs.predicted_factor,
+        )
+
+    def check(self, model, ys, inputs, prior) -> None:
+        check_gaussian_arguments(
+            model, ys, inputs, prior, positive_Q=self.needs_positive_definite_Q
+        )

@@ -1,0 +1,77 @@
+"""Status flags: failure under ``jit`` is data, not an exception.
+
+Every step of every estimator returns an integer ``status`` whose bits are flags of an
+:class:`enum.IntFlag`. The core knows only the flags every estimator can raise
+(:class:`Status`); a family extends them with its own (:meth:`StatusFlag.extend`), so the
+set-membership filter's ``EMPTY_SET`` or the observer's ``NOT_EXCITED`` are not the core's business.
+Each flag carries a message that says what to do, used by ``throw=True``.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import jax.numpy as jnp
+
+
+class StatusFlag(enum.IntFlag):
+    """Base of every family's flags: ``OK`` (0) and the core bits, plus the family's own."""
+
+    @classmethod
+    def describe(cls, code) -> str:
+        """Names of the flags set in ``code`` (``"OK"`` for 0)."""
+        code = int(code)
+        names = [flag.name for flag in cls if flag.value and code & flag.value]
+        return ", ".join(names) if names else "OK"
+
+    @classmethod
+    def extend(cls, name: str, **flags: tuple[int, str]) -> type[StatusFlag]:
+        """A new flag type with this one's flags and ``flags``: name -> (new bit, advice)."""
+        taken = {flag.value for flag in cls}
+        for flag_name, (value, advice) in flags.items():
+            if value in taken or value <= 0 or value & (value - 1):
+                raise ValueError(f"{flag_name}: {value} is not a new single bit")
+            ADVICE[flag_name] = advice
+        members = {"OK": 0, **{flag.name: flag.value for flag in cls}}
+        return StatusFlag(name, {**members, **{k: v for k, (v, _) in flags.items()}})
+
+    @classmethod
+    def explain(cls, code) -> str:
+        """What each flag set in ``code`` means and what to do about it."""
+        code = int(code)
+        lines = [
+            f"{flag.name}: {ADVICE.get(flag.name, '')}" for flag in cls if flag.value & code
+        ]
+        return "\n".join(lines) if lines else "OK"
+
+
+class Status(StatusFlag):
+    """The core's flags, which every estimator may raise."""
+
+    OK = 0
+    NONFINITE = 1  #: a mean, covariance or likelihood term is NaN or infinite
+    NOT_POSITIVE_DEFINITE = 2  #: a covariance (or its factor) lost positive definiteness
+
+
+#: what to do about each flag, shown by ``throw=True``; families add theirs through ``extend``
+ADVICE = {
+    "NONFINITE": (
+        "a value became NaN or infinite: check the measurements for +-inf (NaN marks a missing "
+        "one), the model for overflow, and the noise covariances for zeros a filter inverts"
+    ),
+    "NOT_POSITIVE_DEFINITE": (
+        "a covariance lost positive definiteness in floating point: use a factored filter "
+        "(SquareRootKF, ImprovedSVDKF) or float64"
+    ),
+}
+
+
+def status_where(condition, flag) -> jnp.ndarray:
+    """``flag`` where ``condition`` holds, else 0, as int32."""
+    return jnp.where(condition, int(flag), 0).astype(jnp.int32)
+
+
+def finite_status(*arrays) -> jnp.ndarray:
+    """``Status.NONFINITE`` if any entry of ``arrays`` is not finite, else 0."""
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in arrays]))
+    return status_where(~finite, Status.NONFINITE)
