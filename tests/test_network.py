@@ -31,7 +31,7 @@ from jaxest.network.design import (
     optimal_gain,
     unheard_couplings,
 )
-from jaxest.run import Gaussian, run
+from jaxest import Gaussian, run
 from jaxest.systems.chain import initial_prior, mass_chain
 
 DT, STEPS = 2e-3, 5000  # the one sample grid of the chain tests (one compilation of design)

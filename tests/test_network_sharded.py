@@ -15,7 +15,7 @@ SCRIPT = textwrap.dedent(
     jax.config.update("jax_enable_x64", True)
     from jaxest.network import CommunicationStructure, NetworkFilter, design, run_sharded, simulate
     from jaxest.network.filter import heard_offsets
-    from jaxest.run import Gaussian, run
+    from jaxest import Gaussian, run
     from jaxest.systems.chain import initial_prior, mass_chain
 
     assert jax.device_count() == 4

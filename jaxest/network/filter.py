@@ -29,7 +29,9 @@ from jaxest.network.structure import (
     pick_piece,
     piece_index,
 )
-from jaxest.run import Gaussian, check_finite_status
+from jaxest.estimator import AbstractEstimator, AbstractResult
+from jaxest.priors import Gaussian
+from jaxest.status import finite_status
 
 
 def node_rate(A, C, H1, H2, G, mean, coupling, y) -> Array:
@@ -48,20 +50,30 @@ def gain_at(gains: Float[Array, "*T N n q"], k) -> Float[Array, "N n q"]:
 
 
 class NetworkState(eqx.Module):
-    step: Int[Array, ""]  #: k, the sample index (t_k = t0 + k dt)
     mean: Float[Array, "N n"]  #: x^_i(t_k) of every node
 
 
-class NetworkResult(eqx.Module):
+class NetworkOutput(eqx.Module):
+    mean: Float[Array, "N n"] | None  #: x^_i(t_k), before the step's measurements
+    status: Int[Array, ""] | None
+
+
+class NetworkResult(AbstractResult):
     """``mean[k, i]`` = x^_i(t_k), the estimate from the measurements before t_k; ``final_mean``
     is x^(t_T); ``status`` holds :class:`jaxest.Status` bits per step."""
 
-    mean: Float[Array, "T N n"]
-    status: Int[Array, " T"]
-    final_mean: Float[Array, "N n"]
+    final_state: NetworkState
+    mean: Float[Array, "T N n"] | None = None
+    status: Int[Array, " T"] | None = None
+    any_status: Int[Array, ""] | None = None
+    saved: object = None
+
+    @property
+    def final_mean(self) -> Float[Array, "N n"]:
+        return self.final_state.mean
 
 
-class NetworkFilter(eqx.Module):
+class NetworkFilter(AbstractEstimator):
     """Eq 9 with designed gains: ``gains`` (N, n, q) constant, or (T, N, n, q) with gains[k] used
     on [t_k, t_k + dt] (e.g. :attr:`NetworkDesign.gains` on the sample grid)."""
 
@@ -75,23 +87,33 @@ class NetworkFilter(eqx.Module):
 
     def init(self, model: LargeScaleSystem, prior: Gaussian) -> NetworkState:
         """x^_i(t0) = m_i(0) (eq 10); ``prior.mean`` has shape (N, n)."""
-        return NetworkState(jnp.zeros((), jnp.int32), jnp.asarray(prior.mean))
+        return NetworkState(jnp.asarray(prior.mean))
 
-    def step(self, model: LargeScaleSystem, state: NetworkState, y_k, u_k=None):
-        t = self.t0 + state.step * self.dt
+    def check(self, model, ys, inputs, prior) -> None:
+        if not isinstance(model, LargeScaleSystem):
+            raise ValueError(f"model: expected a LargeScaleSystem, got {type(model).__name__}")
+        if not isinstance(prior, Gaussian):
+            raise ValueError(f"prior: expected jaxest.Gaussian(mean, cov), got {type(prior)}")
+        N = model.num_nodes
+        if np.ndim(prior.mean) != 2 or np.shape(prior.mean)[0] != N:
+            raise ValueError(f"prior.mean: expected shape ({N}, n), got {np.shape(prior.mean)}")
+        if np.ndim(ys) != 3 or np.shape(ys)[1] != N:
+            raise ValueError(f"ys: expected shape (T, {N}, q), got {np.shape(ys)}")
+
+    def step(self, model: LargeScaleSystem, state: NetworkState, k, y_k, u_k=None, key=None):
+        t = self.t0 + k * self.dt
         sys = model.at(t)
         hears = self.structure.at(t).hears
         used = (hears | jnp.eye(hears.shape[-1], dtype=bool)).astype(state.mean.dtype)
         coupling = jnp.einsum("ij,ijhn,jn->ih", used, sys.L, state.mean)
         rate = node_rate(
-            sys.A, sys.C, sys.H1, sys.H2, self.gain(state.step), state.mean, coupling, y_k
+            sys.A, sys.C, sys.H1, sys.H2, self.gain(k), state.mean, coupling, y_k
         )
         mean = state.mean + self.dt * rate
-        return NetworkState(state.step + 1, mean), (state.mean, check_finite_status(mean))
+        return NetworkState(mean), NetworkOutput(state.mean, finite_status(mean))
 
-    def result(self, outputs, final_state: NetworkState) -> NetworkResult:
-        means, status = outputs
-        return NetworkResult(means, status, final_state.mean)
+    def result(self, outputs: NetworkOutput, final_state: NetworkState) -> NetworkResult:
+        return NetworkResult(final_state=final_state, mean=outputs.mean, status=outputs.status)
 
 
 def _node_spec(ndim: int, node_axis_from_end: int) -> PartitionSpec:
@@ -122,7 +144,7 @@ def run_sharded(
     Each device holds its node's model rows, gains, measurements and estimate; the estimates a
     node hears arrive by ``ppermute``, one collective per offset d in :func:`heard_offsets` (so a
     chain structure exchanges with the two neighbouring devices only). Gives the same estimates
-    as :func:`jaxest.run.run` on one device (up to rounding). The structure must be concrete.
+    as :func:`jaxest.run` on one device (up to rounding). The structure must be concrete.
     """
     N = system.num_nodes
     devices = list(jax.devices()[:N]) if devices is None else list(devices)
@@ -150,7 +172,7 @@ def run_sharded(
                 coupling = coupling + hears_k[j].astype(mean.dtype) * (L_k[j] @ other[0])
             rate = node_rate(A_k, C_k, H1_k, H2_k, gain_at(gains, k), mean, coupling[None], y)
             new = mean + dt * rate
-            return (k + 1, new), (mean, check_finite_status(new)[None])
+            return (k + 1, new), (mean, finite_status(new)[None])
 
         (_, final), (means, status) = jax.lax.scan(body, (jnp.zeros((), jnp.int32), mean0), ys)
         return means, status, final
@@ -176,4 +198,7 @@ def run_sharded(
     )
     means, status, final = jax.jit(sharded)(*args)
     status = functools.reduce(jnp.bitwise_or, [status[:, i] for i in range(N)])  # flags of any node
-    return NetworkResult(means, status, final)
+    any_status = jax.lax.reduce(status, jnp.int32(0), jax.lax.bitwise_or, (0,))
+    return NetworkResult(
+        final_state=NetworkState(final), mean=means, status=status, any_status=any_status
+    )

@@ -32,7 +32,7 @@ from jaxest.network.design import (
 from jaxest.network.structure import block_diag, draw_initial_state, simulate_step
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest.run import Gaussian
+from jaxest.priors import Gaussian
 from jaxest.run import run as run_estimator
 from jaxest.systems.chain import initial_prior, mass_chain
 
@@ -63,8 +63,8 @@ def _squared_errors(system, structure, gains, mean0, cov0, dt, steps, keys):
             x, state = carry
             k, step_key = args
             x_next, y = simulate_step(system, x, k * dt, dt, step_key)
-            state_next, (mean, _) = filt.step(system, state, y, None)
-            return (x_next, state_next), jnp.sum((x - mean) ** 2)
+            state_next, out = filt.step(system, state, k, y, None)
+            return (x_next, state_next), jnp.sum((x - out.mean) ** 2)
 
         keys = jax.random.split(key, steps)
         return jax.lax.scan(body, (x0, state), (jnp.arange(steps), keys))[1]
