@@ -20,10 +20,10 @@ import scipy.integrate
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxest import Gaussian, run  # noqa: E402
 from jaxest.network import CommunicationStructure, NetworkFilter, steady_state  # noqa: E402
 from jaxest.network.structure import block_diag  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
-from jaxest import Gaussian, run  # noqa: E402
 from jaxest.systems.chain import initial_prior, mass_chain  # noqa: E402
 
 

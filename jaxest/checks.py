@@ -85,7 +85,7 @@ def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""
     if length is not None and shape[0] != length:
         raise ValueError(f"{name}: has {shape[0]} time steps but the measurements have {length}")
     if dim is not None and shape[1] != dim:
-        raise ValueError(f"{name}: expected {dim} columns{dim_source}, got {shape[1]}")
+        raise ValueError(f"{name}: expected {dim} column(s){dim_source}, got {shape[1]}")
 
 
 def check_measurements(ys):
@@ -98,9 +98,7 @@ def check_measurements(ys):
 def check_gaussian_prior(prior, n: int | None = None) -> int:
     """``prior`` is a :class:`~jaxest.Gaussian` with a vector mean and an SPD covariance."""
     if not isinstance(prior, Gaussian):
-        raise ValueError(
-            f"prior: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}"
-        )
+        raise ValueError(f"prior: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}")
     if np.ndim(prior.mean) != 1:
         raise ValueError(f"prior.mean: expected a vector, got shape {np.shape(prior.mean)}")
     size = np.shape(prior.mean)[0]
@@ -133,26 +131,42 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     T, m_ys = np.shape(ys)
     if inputs is not None:
         check_sequence("inputs", inputs, length=T)
-    n = np.shape(model.F)[-1] if isinstance(model, LinearGaussian) else None
-    if isinstance(model, LinearGaussian):
-        check_matrix("model.F", model.F, (None, None), square=True)
+    n = linear_state_dim(model, prior) if isinstance(model, LinearGaussian) else None
     n = check_gaussian_prior(prior, n)
     u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
     shapes = model_shapes(model, prior.mean, u0)
     m = shapes["h(x)"][0]
-    check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")
+    check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")  # blame ys
     q = shapes["G"][-1] if len(shapes["G"]) == 2 else None
     expected = {
         "f(x)": (n,), "F": (n, n), "G": (n, q), "Q": (q, q),
         "h(x)": (m,), "H": (m, n), "R": (m, m),
     }  # fmt: skip
+    builtin = isinstance(model, LinearGaussian | NonlinearGaussian)
     for name, want in expected.items():
         if shapes[name] != want:
+            where = f"model.{name}" if builtin and name in "FGHQR" else f"model: its {name}"
             raise ValueError(
-                f"model: its {name} has shape {shapes[name]}, expected {want} for a state of "
+                f"{where}: has shape {shapes[name]}, expected {want} for a state of "
                 f"size {n} (prior.mean) and {m} measurements"
             )
     check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
+
+
+def linear_state_dim(model: LinearGaussian, prior) -> int:
+    """n of a linear model, blaming whichever of model.F, model.H and the prior disagrees with
+    the other two."""
+    check_matrix("model.F", model.F, (None, None), square=True)
+    check_matrix("model.H", model.H, (None, None))
+    n_F, n_H = np.shape(model.F)[-1], np.shape(model.H)[-1]
+    n_prior = np.shape(getattr(prior, "mean", None))[-1:] or (None,)
+    if n_F != n_H:
+        odd, n = ("model.F", n_H) if n_H == n_prior[0] else ("model.H", n_F)
+        raise ValueError(
+            f"{odd}: does not fit a state of size {n} (the prior and the other "
+            f"matrix agree on {n}); got F {np.shape(model.F)}, H {np.shape(model.H)}"
+        )
+    return n_F
 
 
 def model_shapes(model, x, u) -> dict[str, tuple]:
@@ -165,7 +179,8 @@ def model_shapes(model, x, u) -> dict[str, tuple]:
             f"prior.mean: the model cannot be evaluated at a state of shape {np.shape(x)} "
             f"({type(err).__name__}: {err})"
         ) from err
-    named = dict(zip(("f(x)", "F", "G", "Q", "h(x)", "H", "R"), (f, F, G, Q, h, H, R)))
+    names = ("f(x)", "F", "G", "Q", "h(x)", "H", "R")
+    named = dict(zip(names, (f, F, G, Q, h, H, R), strict=True))
     return {name: tuple(a.shape) for name, a in named.items()}
 
 

@@ -20,8 +20,8 @@ def symmetrize(P):
 
 
 def cov_from_factor(U, D):
-    """P = U diag(D)^2 U^T."""
-    return (U * D**2) @ U.T
+    """P = U diag(D)^2 U^T (over the last axes: stacked factors give stacked P)."""
+    return (U * D[..., None, :] ** 2) @ jnp.swapaxes(U, -1, -2)
 
 
 def factor_tangent_to_cov(U, D, dU, dD):

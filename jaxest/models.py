@@ -177,9 +177,7 @@ class NonlinearGaussian(AbstractGaussianModel):
     jac_f: Callable | None = None
     jac_h: Callable | None = None
 
-    def __init__(
-        self, f, h, Q, R, noise_gain=None, noise_on_input=False, jac_f=None, jac_h=None
-    ):
+    def __init__(self, f, h, Q, R, noise_gain=None, noise_on_input=False, jac_f=None, jac_h=None):
         self.transition_fn, self.observation_fn, self.Q, self.R = f, h, Q, R
         self.noise_gain, self.noise_on_input = noise_gain, noise_on_input
         self.jac_f, self.jac_h = jac_f, jac_h

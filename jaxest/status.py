@@ -39,9 +39,7 @@ class StatusFlag(enum.IntFlag):
     def explain(cls, code) -> str:
         """What each flag set in ``code`` means and what to do about it."""
         code = int(code)
-        lines = [
-            f"{flag.name}: {ADVICE.get(flag.name, '')}" for flag in cls if flag.value & code
-        ]
+        lines = [f"{flag.name}: {ADVICE.get(flag.name, '')}" for flag in cls if flag.value & code]
         return "\n".join(lines) if lines else "OK"
 
 

@@ -6,6 +6,7 @@ import pytest
 
 import jaxest as je
 from jaxest.filters import SVDEKF, KalmanFilter
+from tests.registry import NEED_POSITIVE_Q
 
 
 def good():
@@ -22,7 +23,7 @@ def test_good_arguments_pass():
     "change, match",
     [
         (lambda m, y, p: (m, y[:, :, None], p), "ys"),
-        (lambda m, y, p: (m, jnp.zeros((10, 3)), p), "model.R"),
+        (lambda m, y, p: (m, jnp.zeros((10, 3)), p), r"ys: expected 1 column\(s\)"),
         (lambda m, y, p: (je.LinearGaussian(jnp.eye(3), m.H, m.Q, m.R), y, p), "model.F"),
         (lambda m, y, p: (je.LinearGaussian(m.F, jnp.ones((1, 3)), m.Q, m.R), y, p), "model.H"),
         (lambda m, y, p: (je.LinearGaussian(m.F, m.H, jnp.ones((2, 3)), m.R), y, p), "model.Q"),
@@ -40,7 +41,7 @@ def test_good_arguments_pass():
                 y,
                 p,
             ),
-            "model.Q: must be positive semidefinite",
+            "model.Q: must be positive",
         ),
         (
             lambda m, y, p: (je.LinearGaussian(m.F, m.H, m.Q, -m.R), y, p),
@@ -56,11 +57,11 @@ def test_good_arguments_pass():
                 y,
                 je.Gaussian(jnp.zeros(2), jnp.asarray([[1.0, 0.0], [0.0, jnp.nan]])),
             ),
-            "init.cov: contains NaN",
+            "prior.cov: contains NaN",
         ),
-        (lambda m, y, p: (m, y, je.Gaussian(jnp.zeros(2), jnp.ones((2, 3)))), "init.cov"),
-        (lambda m, y, p: (m, y, je.Gaussian(jnp.zeros(3), jnp.eye(3))), "model"),
-        (lambda m, y, p: (m, y, (p.mean, p.cov)), "init"),
+        (lambda m, y, p: (m, y, je.Gaussian(jnp.zeros(2), jnp.ones((2, 3)))), "prior.cov"),
+        (lambda m, y, p: (m, y, je.Gaussian(jnp.zeros(3), jnp.eye(3))), "prior.mean"),
+        (lambda m, y, p: (m, y, (p.mean, p.cov)), "prior"),
         (
             lambda m, y, p: (je.LinearGaussian(jnp.stack([m.F] * 5), m.H, m.Q, m.R), y, p),
             "model.F: time-varying",
@@ -82,7 +83,7 @@ def test_mismatched_input_length():
 
 def test_nonlinear_model_shapes_checked():
     model = je.NonlinearGaussian(lambda x, u: x[:1], lambda x, u: x, jnp.eye(2), jnp.eye(2))
-    with pytest.raises(ValueError, match="model transition mean"):
+    with pytest.raises(ValueError, match=r"f\(x\)"):
         je.run(
             KalmanFilter(), model, jnp.zeros((5, 2)), prior=je.Gaussian(jnp.zeros(2), jnp.eye(2))
         )
@@ -115,3 +116,94 @@ def test_missing_rows_are_skipped_exactly():
     b = je.run(SVDEKF(), only_first, jnp.asarray(ys[:, :1]), prior=prior)
     np.testing.assert_allclose(a.mean, b.mean, rtol=1e-12, atol=1e-14)
     np.testing.assert_allclose(a.loglik, b.loglik, rtol=1e-12)
+
+
+# The bad inputs a new user met (Core v2 issue): each named before tracing, or a status under jit.
+
+
+def test_infinite_measurement_is_an_error_not_missing():
+    model, ys, prior = good()
+    ys = ys.at[3, 0].set(jnp.inf)
+    with pytest.raises(ValueError, match=r"ys: contains \+-inf"):
+        je.run(KalmanFilter(), model, ys, prior=prior)
+    import jax
+
+    traced = jax.jit(lambda y: je.run(KalmanFilter(), model, y, prior=prior))(ys)
+    assert int(traced.status[3]) & je.Status.NONFINITE and not bool(traced.ok)
+    missing = je.run(KalmanFilter(), model, ys.at[3, 0].set(jnp.nan), prior=prior)
+    assert bool(missing.ok)  # NaN is missing, and only NaN
+
+
+def test_prior_of_wrong_size_blames_the_prior():
+    model, ys, _ = good()
+    with pytest.raises(ValueError, match=r"prior.mean: expected shape \(2,\)"):
+        je.run(KalmanFilter(), model, ys, prior=je.Gaussian(jnp.zeros(3), jnp.eye(3)))
+
+
+def test_positional_prior_is_named():
+    model, ys, prior = good()
+    with pytest.raises(ValueError, match="prior: pass prior, inputs and key by keyword"):
+        je.run(KalmanFilter(), model, ys, prior)
+    with pytest.raises(ValueError, match="prior: pass"), pytest.warns(DeprecationWarning):
+        je.filter(KalmanFilter(), model, ys, prior)
+
+
+@pytest.mark.parametrize("Filter", NEED_POSITIVE_Q, ids=lambda f: f.__name__)
+def test_zero_process_noise_rejected_where_the_filter_needs_q_positive(Filter):
+    model, ys, prior = good()
+    zero_q = je.LinearGaussian(model.F, model.H, jnp.zeros((2, 2)), model.R)
+    with pytest.raises(ValueError, match="model.Q: must be positive definite"):
+        je.run(Filter(), zero_q, ys, prior=prior)
+    assert bool(je.run(KalmanFilter(), zero_q, ys, prior=prior).ok)  # Q = 0 is fine there
+
+
+class OwnModel(je.AbstractGaussianModel):
+    """A user's model with no Q or R attributes: read through the protocol's methods."""
+
+    scale: float
+    m: int = 1
+
+    def f(self, x, u=None, k=0):
+        return self.scale * x
+
+    def h(self, x, u=None, k=0):
+        return x[: self.m]
+
+    def process_noise(self, x, u, k):
+        return jnp.eye(2), 0.1 * jnp.eye(2)
+
+    def measurement_cov(self, k):
+        return jnp.eye(self.m)
+
+
+def test_users_own_model_gets_the_same_checks():
+    _, ys, prior = good()
+    ys = ys + jnp.linspace(0.0, 1.0, 10)[:, None]
+    res = je.run(KalmanFilter(), OwnModel(0.9), ys, prior=prior)
+    same = je.LinearGaussian(
+        0.9 * jnp.eye(2), jnp.asarray([[1.0, 0.0]]), 0.1 * jnp.eye(2), jnp.eye(1)
+    )
+    reference = je.run(KalmanFilter(), same, ys, prior=prior)
+    np.testing.assert_allclose(res.mean, reference.mean, rtol=1e-12)
+    np.testing.assert_allclose(res.loglik, reference.loglik, rtol=1e-12)
+    with pytest.raises(ValueError, match=r"ys: expected 2 column\(s\)"):
+        je.run(KalmanFilter(), OwnModel(0.9, m=2), ys, prior=prior)
+    with pytest.raises(ValueError, match="model: expected a Gaussian model"):
+        je.run(KalmanFilter(), object(), ys, prior=prior)
+
+
+def test_rts_smooth_compiles_once():
+    model, ys, prior = good()
+    traces = []
+
+    class Counting(OwnModel):
+        def f(self, x, u=None, k=0):
+            traces.append(1)
+            return self.scale * x
+
+    res = je.run(KalmanFilter(), Counting(jnp.asarray(0.9)), ys, prior=prior)
+    traces.clear()
+    je.rts_smooth(Counting(jnp.asarray(0.9)), res)
+    first = len(traces)
+    je.rts_smooth(Counting(jnp.asarray(0.8)), res)
+    assert first > 0 and len(traces) == first  # the second call reused the compiled smoother

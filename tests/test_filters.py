@@ -7,12 +7,11 @@ import numpy as np
 import pytest
 
 import jaxest as je
-from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF, InformationFilter, KalmanFilter, SquareRootKF
+from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF, KalmanFilter
 from jaxest.systems.ill_conditioned import posterior_error, problem
 from tests.reference import kalman_filter, random_system
-
-FILTERS = [KalmanFilter, EKF, InformationFilter, SquareRootKF, SVDEKF, ImprovedSVDKF]
-IDS = [f.__name__ for f in FILTERS]
+from tests.registry import GAUSSIAN_FILTER_IDS as IDS
+from tests.registry import GAUSSIAN_FILTERS as FILTERS
 
 
 def linear_problem(seed=0, n=4, m=2, T=40, correlated_R=True, dtype=jnp.float64):
@@ -175,7 +174,9 @@ def test_jit_vmap_grad(Filter, dtype):
                 je.run(
                     KalmanFilter(),
                     je.LinearGaussian(model.F, model.H, q * model.Q, model.R),
-                    sim.y, prior=prior).loglik
+                    sim.y,
+                    prior=prior,
+                ).loglik
             )
         )
     )(dtype(1.0))

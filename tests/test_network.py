@@ -14,6 +14,7 @@ import scipy.integrate
 import scipy.linalg
 from jax import enable_x64
 
+from jaxest import Gaussian, run
 from jaxest.network import (
     CommunicationStructure,
     LargeScaleSystem,
@@ -31,7 +32,6 @@ from jaxest.network.design import (
     optimal_gain,
     unheard_couplings,
 )
-from jaxest import Gaussian, run
 from jaxest.systems.chain import initial_prior, mass_chain
 
 DT, STEPS = 2e-3, 5000  # the one sample grid of the chain tests (one compilation of design)

@@ -56,7 +56,7 @@ class CholeskyFactor(AbstractCovarianceFactor):
 
     @property
     def cov(self):
-        return self.chol @ self.chol.T
+        return self.chol @ jnp.swapaxes(self.chol, -1, -2)
 
 
 class SVDFactor(AbstractCovarianceFactor):

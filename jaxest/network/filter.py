@@ -23,13 +23,13 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, Int
 
+from jaxest.estimator import AbstractEstimator, AbstractResult
 from jaxest.network.structure import (
     CommunicationStructure,
     LargeScaleSystem,
     pick_piece,
     piece_index,
 )
-from jaxest.estimator import AbstractEstimator, AbstractResult
 from jaxest.priors import Gaussian
 from jaxest.status import finite_status
 
@@ -106,9 +106,7 @@ class NetworkFilter(AbstractEstimator):
         hears = self.structure.at(t).hears
         used = (hears | jnp.eye(hears.shape[-1], dtype=bool)).astype(state.mean.dtype)
         coupling = jnp.einsum("ij,ijhn,jn->ih", used, sys.L, state.mean)
-        rate = node_rate(
-            sys.A, sys.C, sys.H1, sys.H2, self.gain(k), state.mean, coupling, y_k
-        )
+        rate = node_rate(sys.A, sys.C, sys.H1, sys.H2, self.gain(k), state.mean, coupling, y_k)
         mean = state.mean + self.dt * rate
         return NetworkState(mean), NetworkOutput(state.mean, finite_status(mean))
 

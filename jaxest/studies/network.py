@@ -30,9 +30,9 @@ from jaxest.network.design import (
     optimal_free_gain,
 )
 from jaxest.network.structure import block_diag, draw_initial_state, simulate_step
+from jaxest.priors import Gaussian
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest.priors import Gaussian
 from jaxest.run import run as run_estimator
 from jaxest.systems.chain import initial_prior, mass_chain
 

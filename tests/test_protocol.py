@@ -1,0 +1,242 @@
+"""The Core v2 protocol from outside the package: a new estimator is one subclass and gets
+``run``, ``monte_carlo`` and ``fit``; associative estimators run in parallel; the caller chooses
+what is saved; results resume; PRNG keys and ``throw`` come from the driver."""
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import pytest
+
+import jaxest as je
+
+DT = 0.5
+
+
+class AlphaBetaState(eqx.Module):
+    position: jax.Array
+    velocity: jax.Array
+
+
+class AlphaBetaOutput(eqx.Module):
+    mean: jax.Array | None
+    status: jax.Array | None
+
+
+class AlphaBetaResult(je.AbstractResult):
+    final_state: AlphaBetaState
+    mean: jax.Array | None = None
+    status: jax.Array | None = None
+    any_status: jax.Array | None = None
+    saved: object = None
+
+
+class AlphaBetaTracker(je.AbstractEstimator):
+    """Kalata's alpha-beta tracker: gains from the tracking index lambda = sigma_a T^2 / sigma_v
+    of the model's (white-acceleration) Q and R; it is the steady-state Kalman filter of the
+    constant-velocity model with G = [T^2/2, T]^T."""
+
+    def gains(self, model):
+        lam = jnp.sqrt(model.Q[0, 0]) * DT**2 / jnp.sqrt(model.R[0, 0])
+        r = (4.0 + lam - jnp.sqrt(8.0 * lam + lam**2)) / 4.0
+        alpha = 1.0 - r**2
+        beta = 2.0 * (2.0 - alpha) - 4.0 * jnp.sqrt(1.0 - alpha)
+        return alpha, beta
+
+    def init(self, model, prior):
+        return AlphaBetaState(prior.mean[0], prior.mean[1])
+
+    def step(self, model, state, k, y, u, key):
+        alpha, beta = self.gains(model)
+        e = y[0] - state.position
+        position = state.position + alpha * e
+        velocity = state.velocity + beta / DT * e
+        mean = jnp.stack([position, velocity])
+        status = je.status.finite_status(mean)
+        return AlphaBetaState(position + DT * velocity, velocity), AlphaBetaOutput(mean, status)
+
+    def result(self, outputs, final_state):
+        return AlphaBetaResult(final_state=final_state, mean=outputs.mean, status=outputs.status)
+
+
+def constant_velocity(sigma_a=0.3, sigma_v=1.0):
+    F = jnp.asarray([[1.0, DT], [0.0, 1.0]])
+    G = jnp.asarray([[DT**2 / 2], [DT]])
+    H = jnp.asarray([[1.0, 0.0]])
+    return je.LinearGaussian(F, H, jnp.asarray([[sigma_a**2]]), jnp.asarray([[sigma_v**2]]), G=G)
+
+
+PRIOR = je.Gaussian(jnp.zeros(2), 10.0 * jnp.eye(2))
+
+
+def test_new_estimator_runs_through_run_monte_carlo_and_fit():
+    model = constant_velocity()
+    sim = je.simulate(model, PRIOR, 400, jax.random.PRNGKey(0))
+    tracked = je.run(AlphaBetaTracker(), model, sim.y, prior=PRIOR)
+    steady = je.run(je.SteadyStateKalmanFilter(), model, sim.y, prior=PRIOR)
+    # Kalata's closed form is the steady-state Kalman filter of this model (independent check)
+    np.testing.assert_allclose(tracked.mean, steady.mean, rtol=1e-9, atol=1e-9)
+    assert bool(tracked.ok) and tracked.status.shape == (400,)
+
+    final_errors = je.monte_carlo(
+        lambda key: (
+            je.run(AlphaBetaTracker(), model, (s := je.simulate(model, PRIOR, 100, key)).y,
+                   prior=PRIOR).mean[-1] - s.states[-1]
+        ),
+        jax.random.PRNGKey(1),
+        64,
+    )  # fmt: skip
+    assert final_errors.shape == (64, 2) and np.all(np.isfinite(final_errors))
+
+    wrong = constant_velocity(sigma_a=3.0)  # ten times the true acceleration noise
+    batch = je.monte_carlo(lambda key: je.simulate(model, PRIOR, 100, key), jax.random.key(2), 8)
+    loss = je.supervised_mse(AlphaBetaTracker(), batch.y, batch.states, prior=PRIOR)
+    fitted = je.fit(wrong, loss, ("Q",), optimizer=optax.adam(0.1), num_steps=60)
+    assert fitted.losses[-1] < 0.9 * fitted.losses[0]
+    assert abs(math.log(float(fitted.model.Q[0, 0]) / 0.09)) < abs(math.log(9.0 / 0.09))
+
+
+class InformationElement(eqx.Module):
+    """Information-form evidence about a constant theta: Lambda = sum H^T R^-1 H, eta = ..."""
+
+    info: jax.Array
+    vector: jax.Array
+
+
+class LeastSquaresOutput(eqx.Module):
+    mean: jax.Array | None
+    status: jax.Array | None
+
+
+class LeastSquaresResult(je.AbstractResult):
+    final_state: InformationElement
+    mean: jax.Array | None = None
+    status: jax.Array | None = None
+    any_status: jax.Array | None = None
+    saved: object = None
+
+
+class RecursiveLeastSquares(je.AbstractAssociativeEstimator):
+    """theta from y_k = H_k theta + v_k: evidence adds up, so the steps are associative."""
+
+    R: jax.Array
+
+    def prior_element(self, model, prior):
+        info = jnp.linalg.inv(prior.cov)
+        return InformationElement(info, info @ prior.mean)
+
+    def element(self, model, k, y, u):
+        H = model[k]
+        return InformationElement(
+            H.T @ jnp.linalg.solve(self.R, H), H.T @ jnp.linalg.solve(self.R, y)
+        )
+
+    def combine(self, earlier, later):
+        return InformationElement(earlier.info + later.info, earlier.vector + later.vector)
+
+    def output(self, model, prefix, k):
+        mean = jnp.linalg.solve(prefix.info, prefix.vector)
+        return LeastSquaresOutput(mean, je.status.finite_status(mean))
+
+    def result(self, outputs, final_state):
+        return LeastSquaresResult(final_state=final_state, mean=outputs.mean, status=outputs.status)
+
+
+def test_associative_estimator_parallel_equals_sequential_and_batch_least_squares():
+    rng = np.random.default_rng(0)
+    T, p, m = 37, 3, 2
+    Hs = jnp.asarray(rng.normal(size=(T, m, p)))
+    theta = rng.normal(size=p)
+    ys = jnp.asarray(np.einsum("tmp,p->tm", Hs, theta) + 0.1 * rng.normal(size=(T, m)))
+    prior = je.Gaussian(jnp.zeros(p), 100.0 * jnp.eye(p))
+    rls = RecursiveLeastSquares(0.01 * jnp.eye(m))
+    parallel = je.run(rls, Hs, ys, prior=prior)
+    sequential = je.run(rls, Hs, ys, prior=prior, parallel=False)
+    np.testing.assert_allclose(parallel.mean, sequential.mean, rtol=1e-10)
+    # the last estimate is the regularised batch least-squares solution
+    A = np.concatenate([np.asarray(Hs).reshape(T * m, p), np.eye(p) * 0.1 / 10.0])  # whitened
+    b = np.concatenate([np.asarray(ys).reshape(-1), np.zeros(p)])
+    np.testing.assert_allclose(parallel.mean[-1], np.linalg.lstsq(A, b, rcond=None)[0], rtol=1e-9)
+    with pytest.raises(ValueError, match="parallel"):
+        je.run(je.KalmanFilter(), constant_velocity(), ys[:, :1], prior=PRIOR, parallel=True)
+
+
+def linear_problem(T=60):
+    model = constant_velocity()
+    return model, je.simulate(model, PRIOR, T, jax.random.PRNGKey(3)).y
+
+
+def test_save_chooses_what_is_kept():
+    model, ys = linear_problem()
+    full = je.run(je.SVDEKF(), model, ys, prior=PRIOR)
+    lean = je.run(je.SVDEKF(), model, ys, prior=PRIOR, save=je.SaveAt(fields=()))
+    assert lean.cov is None and lean.mean is None and lean.status is None
+    np.testing.assert_allclose(lean.loglik, full.loglik, rtol=1e-12)
+    np.testing.assert_allclose(lean.loglik, jnp.sum(full.loglik_terms), rtol=1e-12)
+    assert int(lean.any_status) == 0 and bool(lean.ok)
+    own = je.run(
+        je.SVDEKF(), model, ys, prior=PRIOR,
+        save=je.SaveAt(fields=("mean", "factor"), fn=lambda out: out.cov[0, 0]),
+    )  # fmt: skip
+    np.testing.assert_allclose(own.saved, full.cov[:, 0, 0], rtol=1e-12)
+    np.testing.assert_allclose(own.factor.cov, full.cov, rtol=1e-10, atol=1e-12)
+    sqrt = je.run(je.SquareRootKF(), model, ys, prior=PRIOR, save=je.SaveAt(fields=("factor",)))
+    np.testing.assert_allclose(sqrt.factor.cov, full.cov, rtol=1e-9, atol=1e-12)
+    assert np.allclose(np.triu(np.asarray(sqrt.factor.chol[5]), 1), 0.0)
+    with pytest.raises(ValueError, match="save"):
+        je.run(je.KalmanFilter(), model, ys, prior=PRIOR, save=je.SaveAt(fields=("means",)))
+
+
+@pytest.mark.parametrize("Filter", [je.KalmanFilter, je.SVDEKF, je.SquareRootKF])
+def test_resume_from_final_state_equals_one_run(Filter):
+    model, ys = linear_problem()
+    whole = je.run(Filter(), model, ys, prior=PRIOR)
+    first = je.run(Filter(), model, ys[:25], prior=PRIOR)
+    rest = je.run(Filter(), model, ys[25:], state=first.final_state, k0=25)
+    np.testing.assert_allclose(rest.mean, whole.mean[25:], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(rest.loglik, whole.loglik, rtol=1e-12)
+
+
+class NoisyTracker(AlphaBetaTracker):
+    """An estimator that samples: it jitters its estimate with the step's key."""
+
+    needs_key = True
+
+    def step(self, model, state, k, y, u, key):
+        state, out = super().step(model, state, k, y, u, key)
+        return state, AlphaBetaOutput(out.mean + jax.random.normal(key, (2,)), out.status)
+
+
+def test_driver_splits_the_key_per_step():
+    model, ys = linear_problem()
+    with pytest.raises(ValueError, match="key"):
+        je.run(NoisyTracker(), model, ys, prior=PRIOR)
+    a = je.run(NoisyTracker(), model, ys, prior=PRIOR, key=jax.random.key(0)).mean
+    b = je.run(NoisyTracker(), model, ys, prior=PRIOR, key=jax.random.key(0)).mean
+    c = je.run(NoisyTracker(), model, ys, prior=PRIOR, key=jax.random.key(1)).mean
+    clean = je.run(AlphaBetaTracker(), model, ys, prior=PRIOR).mean
+    np.testing.assert_array_equal(a, b)
+    assert not np.allclose(a, c)
+    jitter = np.asarray(a - clean)
+    assert abs(np.corrcoef(jitter[:-1, 0], jitter[1:, 0])[0, 1]) < 0.3  # fresh draws each step
+
+
+def test_throw_raises_with_advice():
+    model, ys = linear_problem()
+    bad = je.LinearGaussian(model.F, model.H, model.Q, jnp.asarray([[jnp.nan]]), G=model.G)
+    quiet = jax.jit(lambda m: je.run(je.KalmanFilter(), m, ys, prior=PRIOR))(bad)
+    assert not bool(quiet.ok) and "NONFINITE" in je.Status.describe(quiet.any_status)
+    with pytest.raises(Exception, match="NONFINITE"):
+        jax.jit(lambda m: je.run(je.KalmanFilter(), m, ys, prior=PRIOR, throw=True).mean)(bad)
+
+
+def test_status_flags_extend_per_family():
+    Family = je.Status.extend("Family", STUCK=(64, "unstick it"))
+    assert Family.NONFINITE == je.Status.NONFINITE and Family.STUCK == 64
+    assert Family.describe(65) == "NONFINITE, STUCK" and je.Status.describe(0) == "OK"
+    assert "unstick it" in Family.explain(64)
+    with pytest.raises(ValueError, match="STUCK"):
+        je.Status.extend("Clash", STUCK=(2, "taken"))
