@@ -4,6 +4,16 @@ the devices of a ``jax.sharding.Mesh`` (and over hosts after ``jax.distributed.i
 Run i always receives ``jax.random.split(key, num_runs)[i]``, whatever the chunk size, device
 count or host count, so a study is reproducible from one key and gives the same numbers on one
 device and on many.
+
+Compiled once per ``run_fn``: the batched program is cached on the function object (and, for an
+``eqx.Module`` run function, on its structure, its arrays being inputs), so a study that calls
+:func:`monte_carlo` again with the same ``run_fn`` -- e.g. another seed, or a Module holding a
+different noise level -- reuses the compilation.
+
+jaxlib 0.10 on CPU: two batched LAPACK calls (``solve``, ``cholesky``, ``svd``, ``eigh``...) that
+run at once with more than about 2e5 flops of batch each can deadlock XLA's CPU thread pool. If a
+run function with several independent small-matrix factorisations hangs, lower ``chunk_size``
+(fewer runs per batched call) or write the small factorisations in plain ``jnp``.
 """
 
 from __future__ import annotations
@@ -11,6 +21,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -64,22 +75,26 @@ def monte_carlo(
     padded = np.concatenate([padded, np.repeat(padded[-1:], num_chunks * chunk - num_runs, 0)])
     padded = padded.reshape(num_chunks, chunk, *padded.shape[1:])
 
-    def all_chunks(raw_keys):
-        chunk_keys = jax.random.wrap_key_data(raw_keys) if _is_typed(keys) else raw_keys
-        return jax.lax.map(jax.vmap(run_fn), chunk_keys)
-
+    typed = _is_typed(keys)
     if mesh is None:
-        out = jax.jit(all_chunks)(jnp.asarray(padded))
+        out = _all_chunks(run_fn, jnp.asarray(padded), typed)
     else:
         axis = mesh.axis_names[0]
         sharding = NamedSharding(mesh, PartitionSpec(None, axis))
         raw = jax.make_array_from_callback(padded.shape, sharding, lambda index: padded[index])
-        out = jax.jit(all_chunks)(raw)
+        out = _all_chunks(run_fn, raw, typed)
         if jax.process_count() > 1:
             from jax.experimental import multihost_utils
 
             out = multihost_utils.process_allgather(out, tiled=True)
     return jax.tree.map(lambda a: a.reshape(num_chunks * chunk, *a.shape[2:])[:num_runs], out)
+
+
+@eqx.filter_jit
+def _all_chunks(run_fn: Callable, raw_keys, typed: bool):
+    """Every run: a ``lax.map`` over chunks of a ``vmap`` over the runs of a chunk."""
+    chunk_keys = jax.random.wrap_key_data(raw_keys) if typed else raw_keys
+    return jax.lax.map(jax.vmap(run_fn), chunk_keys)
 
 
 def _is_typed(keys) -> bool:

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest.montecarlo import monte_carlo as je_monte_carlo
 from jaxest.network import CommunicationStructure, NetworkFilter, design, steady_state
 from jaxest.network.design import (
     centralized_steady_state,
@@ -50,42 +51,37 @@ def structures(N: int) -> dict[str, CommunicationStructure]:
     }
 
 
-@eqx.filter_jit
-def _squared_errors(system, structure, gains, mean0, cov0, dt, steps, keys):
-    filt = NetworkFilter(structure, gains, dt)
+class SquaredErrorRun(eqx.Module):
+    """One Monte Carlo run: truth and filter advance in one scan; the result is
+    sum_i |x_i - x^_i|^2 per sample step, so nothing of size steps x N is stored. A Module, so
+    :func:`jaxest.monte_carlo` compiles it once for every structure (its arrays are inputs)."""
 
-    def one(key):
+    system: object
+    filt: NetworkFilter
+    mean0: jax.Array
+    cov0: jax.Array
+    steps: int = eqx.field(static=True)
+
+    def __call__(self, key):
         key0, key = jax.random.split(key)
-        x0 = draw_initial_state(mean0, cov0, key0)
-        state = filt.init(system, Gaussian(mean0, cov0))
+        x0 = draw_initial_state(self.mean0, self.cov0, key0)
+        state = self.filt.init(self.system, Gaussian(self.mean0, self.cov0))
 
         def body(carry, args):
             x, state = carry
             k, step_key = args
-            x_next, y = simulate_step(system, x, k * dt, dt, step_key)
-            state_next, out = filt.step(system, state, k, y, None)
+            x_next, y = simulate_step(self.system, x, k * self.filt.dt, self.filt.dt, step_key)
+            state_next, out = self.filt.step(self.system, state, k, y, None)
             return (x_next, state_next), jnp.sum((x - out.mean) ** 2)
 
-        keys = jax.random.split(key, steps)
-        return jax.lax.scan(body, (x0, state), (jnp.arange(steps), keys))[1]
-
-    return jax.vmap(one)(keys)
+        keys = jax.random.split(key, self.steps)
+        return jax.lax.scan(body, (x0, state), (jnp.arange(self.steps), keys))[1]
 
 
 def monte_carlo(system, structure, gains, mean0, cov0, dt, steps, runs, key, chunk=50):
-    """Squared error sum_i |x_i - x^_i|^2 per run and sample step, (runs, steps); truth and filter
-    advance in one scan, so nothing of size steps x N is stored."""
-    keys = jax.random.split(key, runs)
-    return np.concatenate(
-        [
-            np.asarray(
-                _squared_errors(
-                    system, structure, gains, mean0, cov0, dt, steps, keys[i : i + chunk]
-                )
-            )
-            for i in range(0, runs, chunk)
-        ]
-    )
+    """Squared error sum_i |x_i - x^_i|^2 per run and sample step, (runs, steps)."""
+    one_run = SquaredErrorRun(system, NetworkFilter(structure, gains, dt), mean0, cov0, steps)
+    return np.asarray(je_monte_carlo(one_run, key, runs, chunk_size=chunk, mesh=None))
 
 
 @eqx.filter_jit
