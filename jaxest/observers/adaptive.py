@@ -39,7 +39,8 @@ from jaxtyping import Array, Float, Int
 from jaxest.checks import check_matrix
 from jaxest.linalg import symmetrize
 from jaxest.observers import excitation
-from jaxest.run import Status, check_finite_status
+from jaxest.observers.excitation import ObserverStatus as Status
+from jaxest.status import finite_status as check_finite_status
 
 
 def _value(matrix, t):

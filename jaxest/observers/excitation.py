@@ -18,7 +18,18 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from jaxest.linalg import symmetrize
-from jaxest.run import Status
+from jaxest.status import Status as CoreStatus
+
+#: the observers' status flags: the core's and NOT_EXCITED
+ObserverStatus = CoreStatus.extend(
+    "ObserverStatus",
+    NOT_EXCITED=(
+        16,
+        "persistent excitation was lost over the window: the parameter estimate is not being "
+        "corrected; excite the system or hold the estimate",
+    ),
+)
+Status = ObserverStatus
 
 
 class ExcitationWindow(eqx.Module):

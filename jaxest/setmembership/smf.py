@@ -35,7 +35,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxest.run import Status, check_finite_status, run
+from jaxest.run import run
+from jaxest.setmembership.status import SetStatus as Status
+from jaxest.status import finite_status as check_finite_status
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
