@@ -36,8 +36,6 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxest.run import run
-from jaxest.setmembership.status import SetStatus as Status
-from jaxest.status import finite_status as check_finite_status
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
@@ -46,6 +44,8 @@ from jaxest.setmembership.ellipsoid import (
     is_positive_definite,
 )
 from jaxest.setmembership.interval import remainder_bound
+from jaxest.setmembership.status import SetStatus as Status
+from jaxest.status import finite_status as check_finite_status
 
 
 class BoundedNoiseModel(eqx.Module):
