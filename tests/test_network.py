@@ -21,7 +21,7 @@ from jaxest.network import (
     NetworkFilter,
     check_existence,
     design,
-    simulate,
+    simulate_network,
     steady_state,
 )
 from jaxest.network.design import (
@@ -280,7 +280,7 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
         system64, structure, mean0, cov0, des = chain3
         system, mean0, cov0 = mass_chain(3, dtype=dt_), mean0.astype(dt_), cov0.astype(dt_)
         filt = NetworkFilter(structure, des.gains[:T].astype(dt_), DT)
-        _, ys = jax.jit(simulate, static_argnums=(3, 4))(
+        _, ys = jax.jit(simulate_network, static_argnums=(3, 4))(
             system, mean0, cov0, DT, T, jax.random.key(0)
         )
         prior = Gaussian(mean0, cov0)
@@ -329,7 +329,7 @@ def test_monte_carlo_matches_designed_cost(chain3):
         prior = Gaussian(mean0, cov0)
 
         def errors(key):
-            xs, ys = simulate(system, mean0, cov0, DT, STEPS, key)
+            xs, ys = simulate_network(system, mean0, cov0, DT, STEPS, key)
             e = xs - run(filt, system, ys, prior=prior).mean
             return jnp.einsum("tia,tia->t", e, e)
 

@@ -13,7 +13,7 @@ SCRIPT = textwrap.dedent(
     """
     import jax, jax.numpy as jnp, numpy as np
     jax.config.update("jax_enable_x64", True)
-    from jaxest.network import CommunicationStructure, NetworkFilter, design, run_sharded, simulate
+    from jaxest.network import CommunicationStructure, NetworkFilter, design, run_sharded, simulate_network
     from jaxest.network.filter import heard_offsets
     from jaxest import Gaussian, run
     from jaxest.systems.chain import initial_prior, mass_chain
@@ -31,7 +31,7 @@ SCRIPT = textwrap.dedent(
         "left_then_full": left_then_full,
     }
     assert heard_offsets(structures["chain"]) == [1, 3]  # i + 1 and i - 1 (mod 4) only
-    _, ys = simulate(system, mean0, cov0, dt, T, jax.random.key(0))
+    _, ys = simulate_network(system, mean0, cov0, dt, T, jax.random.key(0))
     for name, structure in structures.items():
         des = design(system, structure, cov0, jnp.arange(T) * dt)
         filt = NetworkFilter(structure, des.gains, dt)

@@ -18,7 +18,7 @@ from jaxest.network.structure import (
     CommunicationStructure,
     LargeScaleSystem,
     check_existence,
-    simulate,
+    simulate_network,
 )
 
 __all__ = [
@@ -32,6 +32,6 @@ __all__ = [
     "check_existence",
     "design",
     "run_sharded",
-    "simulate",
+    "simulate_network",
     "steady_state",
 ]

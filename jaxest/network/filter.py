@@ -7,7 +7,7 @@ the self-coupling of NOTES 4), written in the equivalent innovation form
     z^_i  = L_ii x^_i + sum_{j in C_i} L_ij x^_j,
 
 so a node needs only its own model rows, its measurements and the estimates it hears. On sampled
-data (y_k = mean of y over [t_k, t_k + dt], see :func:`jaxest.network.structure.simulate`) one step
+data (y_k = mean of y over [t_k, t_k + dt], see :func:`jaxest.network.simulate_network`) one step
 is an Euler step of length dt with the neighbours' estimates exchanged once per step; the error of
 the discretisation is O(dt) (the study computes it exactly).
 """
@@ -24,6 +24,7 @@ from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, Int
 
 from jaxest.estimator import AbstractEstimator, AbstractResult
+from jaxest.models import at_time
 from jaxest.network.structure import (
     CommunicationStructure,
     LargeScaleSystem,
@@ -42,11 +43,6 @@ def node_rate(A, C, H1, H2, G, mean, coupling, y) -> Array:
         + jnp.einsum("iah,ih->ia", C, coupling)
         + jnp.einsum("iaq,iq->ia", G, innovation)
     )
-
-
-def gain_at(gains: Float[Array, "*T N n q"], k) -> Float[Array, "N n q"]:
-    """The gains used on [t_k, t_k + dt]: ``gains[k]`` of time-varying (T, N, n, q) gains."""
-    return gains[k] if gains.ndim == 4 else gains
 
 
 class NetworkState(eqx.Module):
@@ -83,7 +79,7 @@ class NetworkFilter(AbstractEstimator):
     t0: float = eqx.field(static=True, default=0.0)
 
     def gain(self, k):
-        return gain_at(self.gains, k)
+        return at_time(self.gains, k, ndim=3)
 
     def init(self, model: LargeScaleSystem, prior: Gaussian) -> NetworkState:
         """x^_i(t0) = m_i(0) (eq 10); ``prior.mean`` has shape (N, n)."""
@@ -168,7 +164,9 @@ def run_sharded(
                 other = jax.lax.ppermute(mean, "node", perm=[(j, (j - d) % N) for j in range(N)])
                 j = (i + d) % N
                 coupling = coupling + hears_k[j].astype(mean.dtype) * (L_k[j] @ other[0])
-            rate = node_rate(A_k, C_k, H1_k, H2_k, gain_at(gains, k), mean, coupling[None], y)
+            rate = node_rate(
+                A_k, C_k, H1_k, H2_k, at_time(gains, k, ndim=3), mean, coupling[None], y
+            )
             new = mean + dt * rate
             return (k + 1, new), (mean, finite_status(new)[None])
 

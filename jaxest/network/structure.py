@@ -265,7 +265,7 @@ def draw_initial_state(mean0: Float[Array, "N n"], cov0: Float[Array, "N n n"], 
     return mean0 + jnp.einsum("iab,ib->ia", jnp.linalg.cholesky(cov0), normal)
 
 
-def simulate(
+def simulate_network(
     system: LargeScaleSystem,
     mean0: Float[Array, "N n"],
     cov0: Float[Array, "N n n"],
