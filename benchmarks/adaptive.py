@@ -37,7 +37,7 @@ def main() -> None:
 
     from jaxest.observers.adaptive import DiscreteAdaptiveObserver, ObserverPrior
     from jaxest.report import emit_json
-    from jaxest.run import run
+    from jaxest._run import run
     from jaxest.studies.adaptive import (
         DT,
         fly,

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.report import emit_json
-from jaxest.run import Gaussian, run
+from jaxest._run import Gaussian, run
 from jaxest.smoothers.rts import rts_smooth
 from jaxest.smoothers.wiener import WienerSmoother
 from jaxest.systems.wiener_example import ARBITRARY_START, paper_model

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxest.priors import Gaussian
+from jaxest._priors import Gaussian
 
 
 def at_time(matrix: Array, k, ndim: int = 2) -> Array:

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxest.checks import check_matrix, is_concrete
+from jaxest._checks import check_matrix, is_concrete
 from jaxest.linalg import symmetrize
 
 _MAX_ITERATIONS = 100

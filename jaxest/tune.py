@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jaxest.run import SaveAt, run
+from jaxest._run import SaveAt, run
 
 PARAMETRISATIONS = ("cholesky", "log_diagonal")
 

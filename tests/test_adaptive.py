@@ -18,7 +18,7 @@ from jaxest.observers import (
     ObserverPrior,
     simulate_closed_loop,
 )
-from jaxest.run import Status, run
+from jaxest._run import Status, run
 from jaxest.systems.aircraft_linear import aircraft, b747
 
 DT = 0.01

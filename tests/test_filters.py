@@ -10,8 +10,7 @@ import jaxest as je
 from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF, KalmanFilter
 from jaxest.systems.ill_conditioned import posterior_error, problem
 from tests.reference import kalman_filter, random_system
-from tests.registry import GAUSSIAN_FILTER_IDS as IDS
-from tests.registry import GAUSSIAN_FILTERS as FILTERS
+from tests.registry import GAUSSIAN_FILTER_IDS as IDS, GAUSSIAN_FILTERS as FILTERS
 
 
 def linear_problem(seed=0, n=4, m=2, T=40, correlated_R=True, dtype=jnp.float64):

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from jaxest.filters import EKF, SVDEKF
-from jaxest.run import Gaussian, Status, run
+from jaxest._run import Gaussian, Status, run
 from jaxest.systems import flight
 from jaxest.systems import flight_sim as sim
 from jaxest.systems.flight import N_KIN, PARAMETERS

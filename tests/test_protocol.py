@@ -55,7 +55,7 @@ class AlphaBetaTracker(je.AbstractEstimator):
         position = state.position + alpha * e
         velocity = state.velocity + beta / DT * e
         mean = jnp.stack([position, velocity])
-        status = je.status.finite_status(mean)
+        status = je.finite_status(mean)
         return AlphaBetaState(position + DT * velocity, velocity), AlphaBetaOutput(mean, status)
 
     def result(self, outputs, final_state):
@@ -139,7 +139,7 @@ class RecursiveLeastSquares(je.AbstractAssociativeEstimator):
 
     def output(self, model, prefix, k):
         mean = jnp.linalg.solve(prefix.info, prefix.vector)
-        return LeastSquaresOutput(mean, je.status.finite_status(mean))
+        return LeastSquaresOutput(mean, je.finite_status(mean))
 
     def result(self, outputs, final_state):
         return LeastSquaresResult(final_state=final_state, mean=outputs.mean, status=outputs.status)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest.run import Status, run
+from jaxest._run import Status, run
 from jaxest.setmembership import fdi
 from jaxest.setmembership.ellipsoid import Ellipsoid
 from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter, set_membership_filter

@@ -16,8 +16,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest.checks import check_gaussian_arguments, check_gaussian_prior
-from jaxest.estimator import AbstractEstimator, AbstractResult
+from jaxest._checks import check_gaussian_arguments, check_gaussian_prior
+from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest.linalg import chol_inverse, cov_from_factor, factor_psd, inv_spd
 
 

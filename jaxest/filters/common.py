@@ -10,8 +10,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from jaxest._status import Status, finite_status
 from jaxest.linalg import mm, sandwich, symmetrize
-from jaxest.status import Status, finite_status
 
 #: a Python float: computing it with jnp would start the XLA backend at import (which
 #: jax.distributed.initialize forbids) and fix it in float32 before x64 is switched on

@@ -23,7 +23,9 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, Int
 
-from jaxest.estimator import AbstractEstimator, AbstractResult
+from jaxest._estimator import AbstractEstimator, AbstractResult
+from jaxest._priors import Gaussian
+from jaxest._status import finite_status
 from jaxest.models import at_time
 from jaxest.network.structure import (
     CommunicationStructure,
@@ -31,8 +33,6 @@ from jaxest.network.structure import (
     pick_piece,
     piece_index,
 )
-from jaxest.priors import Gaussian
-from jaxest.status import finite_status
 
 
 def node_rate(A, C, H1, H2, G, mean, coupling, y) -> Array:

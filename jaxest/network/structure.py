@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from jaxest.checks import check_matrix, is_concrete
+from jaxest._checks import check_matrix, is_concrete
 
 
 def piece_index(switch_times: tuple[float, ...], t) -> Array:

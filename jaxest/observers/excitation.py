@@ -18,7 +18,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from jaxest.linalg import symmetrize
-from jaxest.status import Status as CoreStatus
+from jaxest._status import Status as CoreStatus
 
 #: the observers' status flags: the core's and NOT_EXCITED
 ObserverStatus = CoreStatus.extend(

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxest.run import run
+from jaxest._run import run
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
@@ -45,7 +45,7 @@ from jaxest.setmembership.ellipsoid import (
 )
 from jaxest.setmembership.interval import remainder_bound
 from jaxest.setmembership.status import SetStatus as Status
-from jaxest.status import finite_status as check_finite_status
+from jaxest._status import finite_status as check_finite_status
 
 
 class BoundedNoiseModel(eqx.Module):
@@ -235,7 +235,7 @@ def check_smf_arguments(model, ys, prior, inputs):
     """Raise ``ValueError`` naming the argument for malformed SMF arguments."""
     import numpy as np
 
-    from jaxest.checks import check_matrix, check_sequence, is_concrete
+    from jaxest._checks import check_matrix, check_sequence, is_concrete
 
     if not isinstance(model, BoundedNoiseModel):
         raise ValueError(f"model: expected a BoundedNoiseModel, got {type(model).__name__}")

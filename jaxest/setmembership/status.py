@@ -1,6 +1,6 @@
 """The set-membership family's status flags: the core's and its own."""
 
-from jaxest.status import Status
+from jaxest._status import Status
 
 SetStatus = Status.extend(
     "SetStatus",

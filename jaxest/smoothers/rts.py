@@ -15,9 +15,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.linalg import cho_solve_lower, symmetrize
-from jaxest.status import finite_status
 
 
 class SmootherResult(eqx.Module):

@@ -5,7 +5,7 @@ For the time-invariant model x(t+1) = Phi x(t) + Gamma w(t), y(t) = H x(t) + v(t
 - :func:`steady_state_gain` (lemma 1, eqs 4-5): Sigma, the steady-state one-step prediction
   covariance, K = Sigma H^T (H Sigma H^T + R)^-1 and Psi_f = (I - K H) Phi;
 - :class:`SteadyStateKalmanFilter` (eq 3): x(t+1|t+1) = Psi_f x(t|t) + K y(t+1), an estimator of
-  the usual ``init``/``step`` protocol, so ``jaxest.filter`` and ``jaxest.run`` drive it;
+  the usual ``init``/``step`` protocol, so ``jaxest.run`` drives it;
 - :func:`arma_innovation_model` (lemma 2, eqs 6-7): A(q^-1) y(t) = Psi(q^-1) eps(t) with
   Psi(q^-1) = det(I - Psi_f q^-1) and A(q^-1) = Psi(q^-1) I - H Phi adj(I - Psi_f q^-1) K q^-1;
 - :func:`fixed_point_smooth` (lemma 3, eqs 8-9): x(t|t+i) = x(t|t+i-1) + K_i eps(t+i),
@@ -24,7 +24,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxest.checks import check_gaussian_prior
+from jaxest._checks import check_gaussian_prior
+from jaxest._priors import Gaussian
+from jaxest._run import run
+from jaxest._status import finite_status
 from jaxest.filters.base import (
     AbstractCovarianceFactor,
     AbstractGaussianFilter,
@@ -34,10 +37,7 @@ from jaxest.filters.base import (
 from jaxest.filters.common import gaussian_loglik
 from jaxest.linalg import symmetrize
 from jaxest.models import LinearGaussian
-from jaxest.priors import Gaussian
 from jaxest.riccati import solve_dare
-from jaxest.run import run
-from jaxest.status import finite_status
 
 
 class SteadyStateGain(eqx.Module):

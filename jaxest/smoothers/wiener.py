@@ -34,7 +34,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxest.models import LinearGaussian
-from jaxest.priors import Gaussian
+from jaxest._priors import Gaussian
 from jaxest.smoothers.steady_state import (
     ArmaInnovationModel,
     SteadyStateGain,

@@ -37,7 +37,7 @@ from jaxest.observers.adaptive import (
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.riccati import lqr_gain, solve_care
-from jaxest.run import Status
+from jaxest._run import Status
 from jaxest.systems.aircraft_linear import aircraft
 from jaxest.tune import fit
 

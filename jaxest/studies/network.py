@@ -20,6 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest._priors import Gaussian
+from jaxest._run import run as run_estimator
 from jaxest.montecarlo import monte_carlo as je_monte_carlo
 from jaxest.network import CommunicationStructure, NetworkFilter, design, steady_state
 from jaxest.network.design import (
@@ -31,10 +33,8 @@ from jaxest.network.design import (
     optimal_free_gain,
 )
 from jaxest.network.structure import block_diag, draw_initial_state, simulate_step
-from jaxest.priors import Gaussian
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest.run import run as run_estimator
 from jaxest.systems.chain import initial_prior, mass_chain
 
 DESCRIPTION = "network filter on a mass chain: J per structure, Monte Carlo, scaling in N"

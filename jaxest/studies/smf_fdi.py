@@ -27,9 +27,9 @@ from jaxest.filters.common import covariance_predict
 from jaxest.models import NonlinearGaussian
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest.run import Gaussian
-from jaxest.run import filter as gaussian_filter
-from jaxest.run import run as run_estimator
+from jaxest._priors import Gaussian
+from jaxest._run import filter as gaussian_filter
+from jaxest._run import run as run_estimator
 from jaxest.setmembership import fdi
 from jaxest.setmembership.smf import SetMembershipFilter
 from jaxest.systems import duffing

@@ -30,8 +30,8 @@ from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF
 from jaxest.plot import plt, save
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest.run import Gaussian, Status
-from jaxest.run import run as run_filter
+from jaxest._run import Gaussian, Status
+from jaxest._run import run as run_filter
 from jaxest.systems import flight, flight_data
 from jaxest.systems import flight_sim as sim
 from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS

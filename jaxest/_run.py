@@ -18,12 +18,12 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from jaxest.estimator import (
+from jaxest._estimator import (
     AbstractAssociativeEstimator,
     AbstractEstimator,
     associative_outputs,
 )
-from jaxest.status import StatusFlag
+from jaxest._status import StatusFlag
 
 
 class SaveAt(eqx.Module):
@@ -158,7 +158,7 @@ def run(
 
 def raise_if_failed(result, flags: type[StatusFlag] | None = None):
     """``result``, raising (``eqx.error_if``, works under ``jit``) if its status is not OK."""
-    from jaxest.status import Status
+    from jaxest._status import Status
 
     flags = flags or Status
     message = "a step's status is not OK; result.any_status has the flags. " + "; ".join(

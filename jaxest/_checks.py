@@ -12,8 +12,8 @@ from __future__ import annotations
 import jax
 import numpy as np
 
+from jaxest._priors import Gaussian
 from jaxest.models import AbstractGaussianModel, LinearGaussian, NonlinearGaussian
-from jaxest.priors import Gaussian
 
 
 def is_concrete(x) -> bool:
