@@ -7,4 +7,4 @@ from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF, InformationFilter, Kalman
 GAUSSIAN_FILTERS = [KalmanFilter, EKF, InformationFilter, SquareRootKF, SVDEKF, ImprovedSVDKF]
 GAUSSIAN_FILTER_IDS = [f.__name__ for f in GAUSSIAN_FILTERS]
 #: the filters that factor or invert Q, so Q must be positive definite
-NEED_POSITIVE_Q = [InformationFilter, SquareRootKF, SVDEKF]
+NEED_POSITIVE_Q = [InformationFilter, SquareRootKF]

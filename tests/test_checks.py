@@ -6,7 +6,7 @@ import pytest
 
 import jaxest as je
 from jaxest.filters import SVDEKF, KalmanFilter
-from tests.registry import NEED_POSITIVE_Q
+from tests.registry import GAUSSIAN_FILTERS, NEED_POSITIVE_Q
 
 
 def good():
@@ -154,7 +154,11 @@ def test_zero_process_noise_rejected_where_the_filter_needs_q_positive(Filter):
     zero_q = je.LinearGaussian(model.F, model.H, jnp.zeros((2, 2)), model.R)
     with pytest.raises(ValueError, match="model.Q: must be positive definite"):
         je.run(Filter(), zero_q, ys, prior=prior)
-    assert bool(je.run(KalmanFilter(), zero_q, ys, prior=prior).ok)  # Q = 0 is fine there
+    reference = je.run(KalmanFilter(), zero_q, ys + 1.0, prior=prior)
+    assert bool(reference.ok)  # Q = 0 is fine for the others, the SVD filters included
+    for Other in set(GAUSSIAN_FILTERS) - set(NEED_POSITIVE_Q):
+        other = je.run(Other(), zero_q, ys + 1.0, prior=prior)
+        np.testing.assert_allclose(other.loglik, reference.loglik, rtol=1e-10)
 
 
 class OwnModel(je.AbstractGaussianModel):

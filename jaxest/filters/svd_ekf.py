@@ -150,10 +150,11 @@ class AbstractSVDFilter(AbstractGaussianFilter):
 
 
 class SVDEKF(AbstractSVDFilter):
-    """The paper's SVD-based EKF (eqs 11-25). Q and R positive definite (R^-1 is formed)."""
+    """The paper's SVD-based EKF (eqs 11-25). R positive definite (R^-1 is formed); Q may be
+    singular, Q = 0 included (its square root comes from a symmetric eigendecomposition), as
+    long as P stays positive definite (D^-1 is formed in the measurement update)."""
 
     svd_step: ClassVar[staticmethod] = staticmethod(paper_svd_step)
-    needs_positive_definite_Q = True
 
 
 class ImprovedSVDKF(AbstractSVDFilter):
