@@ -1,4 +1,4 @@
-"""The ill-conditioned measurement update of Dyer & McReynolds / Grewal & Andrews (NOTES.md 1).
+"""The ill-conditioned measurement update of Dyer & McReynolds / Grewal & Andrews (docs/papers/svd_ekf.md).
 
 P0 = I3, H = [[1, 1, 1], [1, 1, 1 + d]], R = d^2 I2, one update. As d -> 0 the conventional
 Kalman filter's P+ = P - K S K^T loses all accuracy near d = 1e-8 in float64.
@@ -21,10 +21,11 @@ def exact_posterior(d: float) -> np.ndarray:
 
 
 def problem(d: float, dtype=jnp.float64):
-    """(model, prior, ys) of the test in ``dtype``: one zero measurement."""
+    """(model, prior, ys) of the test in ``dtype``: one zero measurement. P+ of that one update
+    does not depend on Q; Q = I (not 0) lets every filter, those that factor Q too, predict."""
     H = jnp.asarray([[1.0, 1.0, 1.0], [1.0, 1.0, 1.0 + d]], dtype)
     R = jnp.asarray(d, dtype) ** 2 * jnp.eye(2, dtype=dtype)
-    model = je.LinearGaussian(jnp.eye(3, dtype=dtype), H, jnp.zeros((3, 3), dtype), R)
+    model = je.LinearGaussian(jnp.eye(3, dtype=dtype), H, jnp.eye(3, dtype=dtype), R)
     return (
         model,
         je.Gaussian(jnp.zeros(3, dtype), jnp.eye(3, dtype=dtype)),
