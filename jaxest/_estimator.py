@@ -31,6 +31,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Int
 
+from jaxest._status import Status, StatusFlag
+
 
 class AbstractResult(eqx.Module):
     """What every estimator's result has beside its own fields.
@@ -41,6 +43,9 @@ class AbstractResult(eqx.Module):
     (``run(..., state=result.final_state, k0=T)``); ``saved`` holds the caller's
     ``SaveAt(fn=...)`` of each step's output, or ``None``.
     """
+
+    #: the status flags of this family (``throw=True`` and ``describe`` use them)
+    flags: ClassVar[type[StatusFlag]] = Status
 
     final_state: eqx.AbstractVar[Any]
     status: eqx.AbstractVar[Int[Array, " T"] | None]

@@ -21,9 +21,9 @@ import jax.numpy as jnp
 from jaxest._estimator import (
     AbstractAssociativeEstimator,
     AbstractEstimator,
+    AbstractResult,
     associative_outputs,
 )
-from jaxest._status import StatusFlag
 
 
 class SaveAt(eqx.Module):
@@ -156,11 +156,12 @@ def run(
     return result
 
 
-def raise_if_failed(result, flags: type[StatusFlag] | None = None):
-    """``result``, raising (``eqx.error_if``, works under ``jit``) if its status is not OK."""
-    from jaxest._status import Status
+def raise_if_failed(result: AbstractResult):
+    """``result``, raising (``eqx.error_if``, works under ``jit``) if its status is not OK.
 
-    flags = flags or Status
+    The message lists what each of the family's flags (``type(result).flags``) means.
+    """
+    flags = type(result).flags
     message = "a step's status is not OK; result.any_status has the flags. " + "; ".join(
         flags.explain(flag) for flag in flags if flag.value
     )
