@@ -57,8 +57,8 @@ def right_svd(A):
 
 def cho_solve_lower(L, B):
     """Solve (L L^T) X = B for lower-triangular L."""
-    Z = jax.scipy.linalg.solve_triangular(L, B, lower=True)
-    return jax.scipy.linalg.solve_triangular(L.T, Z, lower=False)
+    Z = solve_triangular(L, B, lower=True)
+    return solve_triangular(jnp.swapaxes(L, -1, -2), Z, lower=False)
 
 
 def chol_inverse(L):
@@ -68,7 +68,7 @@ def chol_inverse(L):
 
 def inv_spd(P):
     """Inverse of a symmetric positive definite matrix through its Cholesky factor."""
-    return chol_inverse(jnp.linalg.cholesky(P))
+    return chol_inverse(cholesky(P))
 
 
 def logdet_chol(L):
@@ -96,3 +96,43 @@ def mm(a, b):
 def sandwich(A, P):
     """A P A^T."""
     return mm(mm(A, P), jnp.swapaxes(A, -1, -2))
+
+
+#: largest matrix size whose Cholesky factor and triangular solves are unrolled into fused
+#: elementwise jnp code instead of a LAPACK call (whose fixed per-call cost dominates small
+#: batched matrices on CPU)
+SMALL_FACTOR = 8
+
+
+def cholesky(A):
+    """Lower Cholesky factor of SPD ``A`` (last two axes); NaN where ``A`` is not positive
+    definite, as LAPACK's. Unrolled over the matrix size up to ``SMALL_FACTOR``."""
+    n = A.shape[-1]
+    if n > SMALL_FACTOR:
+        return jnp.linalg.cholesky(A)
+    L = [[None] * n for _ in range(n)]
+    for j in range(n):
+        diag = jnp.sqrt(A[..., j, j] - sum((L[j][k] ** 2 for k in range(j)), 0.0))
+        L[j][j] = diag
+        for i in range(j + 1, n):
+            L[i][j] = (A[..., i, j] - sum((L[i][k] * L[j][k] for k in range(j)), 0.0)) / diag
+    zero = jnp.zeros_like(A[..., 0, 0])
+    rows = [jnp.stack([L[i][j] if j <= i else zero for j in range(n)], -1) for i in range(n)]
+    return jnp.stack(rows, -2)
+
+
+def solve_triangular(L, B, *, lower: bool):
+    """X with L X = B for triangular ``L`` (B a matrix, or a vector); substitution unrolled up
+    to ``SMALL_FACTOR``."""
+    n = L.shape[-1]
+    if n > SMALL_FACTOR:
+        return jax.scipy.linalg.solve_triangular(L, B, lower=lower)
+    if B.ndim == L.ndim - 1:
+        return solve_triangular(L, B[..., None], lower=lower)[..., 0]
+    X = [None] * n
+    order = range(n) if lower else range(n - 1, -1, -1)
+    for i in order:
+        done = [k for k in (range(i) if lower else range(i + 1, n))]
+        acc = B[..., i, :] - sum((L[..., i, k, None] * X[k] for k in done), 0.0)
+        X[i] = acc / L[..., i, i, None]
+    return jnp.stack(X, -2)

@@ -18,7 +18,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_gaussian_arguments, check_gaussian_prior
 from jaxest._estimator import AbstractEstimator, AbstractResult
-from jaxest.linalg import chol_inverse, cov_from_factor, factor_psd, inv_spd
+from jaxest.linalg import chol_inverse, cholesky, cov_from_factor, factor_psd, inv_spd
 
 
 class AbstractCovarianceFactor(eqx.Module):
@@ -52,7 +52,7 @@ class CholeskyFactor(AbstractCovarianceFactor):
 
     @classmethod
     def from_cov(cls, P):
-        return cls(jnp.linalg.cholesky(P))
+        return cls(cholesky(P))
 
     @property
     def cov(self):
@@ -85,7 +85,7 @@ class InformationMatrix(AbstractCovarianceFactor):
 
     @property
     def cov(self):
-        return chol_inverse(jnp.linalg.cholesky(self.info))
+        return chol_inverse(cholesky(self.info))
 
 
 class GaussianState(eqx.Module):

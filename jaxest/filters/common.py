@@ -6,12 +6,11 @@ from __future__ import annotations
 import math
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from jaxest._status import Status, finite_status
-from jaxest.linalg import mm, sandwich, symmetrize
+from jaxest.linalg import cholesky, mm, sandwich, solve_triangular, symmetrize
 
 #: a Python float: computing it with jnp would start the XLA backend at import (which
 #: jax.distributed.initialize forbids) and fix it in float32 before x64 is switched on
@@ -55,7 +54,7 @@ def factor_status(L) -> Int[Array, ""]:
 
 def definiteness_status(P) -> Int[Array, ""]:
     """``NOT_POSITIVE_DEFINITE`` unless P has a finite Cholesky factor with a positive diagonal."""
-    return factor_status(jnp.linalg.cholesky(symmetrize(P)))
+    return factor_status(cholesky(symmetrize(P)))
 
 
 def joseph_update(x, P, meas: Measurement):
@@ -68,11 +67,9 @@ def joseph_update(x, P, meas: Measurement):
     n = x.shape[0]
     HP = mm(H, P)
     S = symmetrize(mm(HP, H.T) + R)
-    S_chol = jnp.linalg.cholesky(S)
-    Z = jax.scipy.linalg.solve_triangular(
-        S_chol, jnp.concatenate([HP, e[:, None]], axis=1), lower=True
-    )
-    K = jax.scipy.linalg.solve_triangular(S_chol.T, Z[:, :n], lower=False).T
+    S_chol = cholesky(S)
+    Z = solve_triangular(S_chol, jnp.concatenate([HP, e[:, None]], axis=1), lower=True)
+    K = solve_triangular(S_chol.T, Z[:, :n], lower=False).T
     IKH = jnp.eye(n, dtype=P.dtype) - mm(K, H)
     P_post = symmetrize(sandwich(IKH, P) + sandwich(K, R))
     return x + K @ e, P_post, S, S_chol, Z[:, n]

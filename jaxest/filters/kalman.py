@@ -24,7 +24,7 @@ from jaxest.filters.common import (
     masked_measurement,
     step_status,
 )
-from jaxest.linalg import chol_inverse, inv_spd, logdet_chol, symmetrize
+from jaxest.linalg import chol_inverse, cholesky, inv_spd, logdet_chol, symmetrize
 
 
 class KalmanFilter(AbstractGaussianFilter):
@@ -65,12 +65,12 @@ class InformationUpdate(eqx.Module):
 def information_update(info_prior, P, logdet_prior, meas) -> InformationUpdate:
     """Eq 9 from the prior information matrix ``info_prior`` = P^-1 (and ln det P), with the
     likelihood term of :func:`information_loglik`."""
-    R_chol = jnp.linalg.cholesky(meas.R)
+    R_chol = cholesky(meas.R)
     R_inv = chol_inverse(R_chol)
     HtR_inv = meas.H.T @ R_inv
     b = HtR_inv @ meas.innovation
     info_post = info_prior + symmetrize(HtR_inv @ meas.H)
-    post_chol = jnp.linalg.cholesky(info_post)
+    post_chol = cholesky(info_post)
     P_post = chol_inverse(post_chol)
     loglik = information_loglik(
         meas.innovation, R_inv, b, P_post,
@@ -92,7 +92,7 @@ class EKF(AbstractGaussianFilter):
         P = factor.matrix
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)
-        P_chol = jnp.linalg.cholesky(P)
+        P_chol = cholesky(P)
         upd = information_update(chol_inverse(P_chol), P, logdet_chol(P_chol), meas)  # eq 9
         x_post = x + upd.P_post @ upd.b  # eqs 8, 10
         x_next, P_next = covariance_predict(model, x_post, upd.P_post, u, k)  # eqs 6-7
@@ -115,7 +115,7 @@ class InformationFilter(AbstractGaussianFilter):
 
     def update_predict(self, model, x, factor: InformationMatrix, k, y, u):
         Y = factor.info
-        Y_chol = jnp.linalg.cholesky(Y)
+        Y_chol = cholesky(Y)
         P = chol_inverse(Y_chol)
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)

@@ -8,11 +8,11 @@ innovation factor Se (S_e = Se Se^T), the normalised gain Kbar = K Se and S(k|k)
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 from jaxest.filters.base import AbstractGaussianFilter, CholeskyFactor, StepOutput
 from jaxest.filters.common import gaussian_loglik, masked_measurement, step_status
+from jaxest.linalg import cholesky, solve_triangular
 
 
 def lower_factor(pre_array_transposed):
@@ -36,16 +36,14 @@ class SquareRootKF(AbstractGaussianFilter):
         y_pred, H, R = model.observation(x, u, k)
         meas = masked_measurement(y, y_pred, H, R)
         m = meas.R.shape[0]
-        pre = jnp.block(
-            [[jnp.linalg.cholesky(meas.R), meas.H @ S], [jnp.zeros((n, m), S.dtype), S]]
-        )
+        pre = jnp.block([[cholesky(meas.R), meas.H @ S], [jnp.zeros((n, m), S.dtype), S]])
         post = lower_factor(pre.T)
         Se, Kbar, S_post = post[:m, :m], post[m:, :m], post[m:, m:]
-        whitened = jax.scipy.linalg.solve_triangular(Se, meas.innovation, lower=True)
+        whitened = solve_triangular(Se, meas.innovation, lower=True)
         x_post = x + Kbar @ whitened
         loglik = gaussian_loglik(whitened, Se, meas.num_observed)
         x_next, F, G, Q = model.transition(x_post, u, k)
-        S_next = lower_factor(jnp.concatenate([S_post.T @ F.T, jnp.linalg.cholesky(Q).T @ G.T]))
+        S_next = lower_factor(jnp.concatenate([S_post.T @ F.T, cholesky(Q).T @ G.T]))
         P_post = S_post @ S_post.T
         status = step_status(x_next, S_next, loglik, positive=jnp.all(jnp.diag(S_post) != 0))
         out = StepOutput(

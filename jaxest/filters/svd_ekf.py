@@ -29,12 +29,14 @@ from jaxest.filters.base import AbstractGaussianFilter, StepOutput, SVDFactor
 from jaxest.filters.common import LOG_2PI, covariance_step, masked_measurement, step_status
 from jaxest.filters.kalman import information_loglik
 from jaxest.linalg import (
+    cholesky,
     cov_from_factor,
     cov_tangent_to_factor,
     factor_psd,
     factor_tangent_to_cov,
     logdet_chol,
     right_svd,
+    solve_triangular,
     symmetrize,
 )
 
@@ -55,9 +57,9 @@ def paper_svd_step(model, x, U, D, y, u, k):
     """One step of the paper's SVD-EKF: measurement update (eqs 16-24), then time update (13-15)."""
     y_pred, H, R = model.observation(x, u, k)
     meas = masked_measurement(y, y_pred, H, R)
-    R_chol = jnp.linalg.cholesky(meas.R)
+    R_chol = cholesky(meas.R)
     eye_m = jnp.eye(meas.R.shape[0], dtype=R.dtype)
-    L = jax.scipy.linalg.solve_triangular(R_chol, eye_m, lower=True).T  # L L^T = R^-1 (eq 17)
+    L = solve_triangular(R_chol, eye_m, lower=True).T  # L L^T = R^-1 (eq 17)
     R_inv = L @ L.T
     s, V = right_svd(jnp.concatenate([L.T @ meas.H @ U, jnp.diag(1.0 / D)]))  # eqs 18-19
     U_post, D_post = U @ V, 1.0 / s  # eqs 21-23

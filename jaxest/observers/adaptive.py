@@ -37,10 +37,10 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_matrix
+from jaxest._status import finite_status as check_finite_status
 from jaxest.linalg import symmetrize
 from jaxest.observers import excitation
 from jaxest.observers.excitation import ObserverStatus as Status
-from jaxest._status import finite_status as check_finite_status
 
 
 def _value(matrix, t):

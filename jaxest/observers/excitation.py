@@ -17,8 +17,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest.linalg import symmetrize
 from jaxest._status import Status as CoreStatus
+from jaxest.linalg import symmetrize
 
 #: the observers' status flags: the core's and NOT_EXCITED
 ObserverStatus = CoreStatus.extend(

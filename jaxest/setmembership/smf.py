@@ -36,6 +36,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxest._run import run
+from jaxest._status import finite_status as check_finite_status
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
@@ -45,7 +46,6 @@ from jaxest.setmembership.ellipsoid import (
 )
 from jaxest.setmembership.interval import remainder_bound
 from jaxest.setmembership.status import SetStatus as Status
-from jaxest._status import finite_status as check_finite_status
 
 
 class BoundedNoiseModel(eqx.Module):

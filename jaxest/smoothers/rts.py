@@ -17,7 +17,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
-from jaxest.linalg import cho_solve_lower, symmetrize
+from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
 
 
 class SmootherResult(eqx.Module):
@@ -53,7 +53,7 @@ def _rts_smooth(model, result: FilterResult, inputs) -> SmootherResult:
         mean_next, cov_next = carry
         k, mean, cov, pred_mean_next, pred_cov_next, u = args
         _, F, _, _ = model.transition(mean, u, k)
-        chol = jnp.linalg.cholesky(pred_cov_next)
+        chol = cholesky(pred_cov_next)
         gain = cho_solve_lower(chol, F @ cov).T
         mean_s = mean + gain @ (mean_next - pred_mean_next)
         cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)

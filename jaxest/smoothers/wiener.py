@@ -33,8 +33,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxest.models import LinearGaussian
 from jaxest._priors import Gaussian
+from jaxest.models import LinearGaussian
 from jaxest.smoothers.steady_state import (
     ArmaInnovationModel,
     SteadyStateGain,

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxest._run import Status
 from jaxest.observers.adaptive import (
     AdaptiveObserver,
     ContinuousLTV,
@@ -37,7 +38,6 @@ from jaxest.observers.adaptive import (
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.riccati import lqr_gain, solve_care
-from jaxest._run import Status
 from jaxest.systems.aircraft_linear import aircraft
 from jaxest.tune import fit
 

@@ -22,14 +22,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest._priors import Gaussian
+from jaxest._run import filter as gaussian_filter, run as run_estimator
 from jaxest.filters import EKF
 from jaxest.filters.common import covariance_predict
 from jaxest.models import NonlinearGaussian
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest._priors import Gaussian
-from jaxest._run import filter as gaussian_filter
-from jaxest._run import run as run_estimator
 from jaxest.setmembership import fdi
 from jaxest.setmembership.smf import SetMembershipFilter
 from jaxest.systems import duffing

@@ -26,14 +26,12 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxest._run import Gaussian, Status, run as run_filter
 from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF
 from jaxest.plot import plt, save
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest._run import Gaussian, Status
-from jaxest._run import run as run_filter
-from jaxest.systems import flight, flight_data
-from jaxest.systems import flight_sim as sim
+from jaxest.systems import flight, flight_data, flight_sim as sim
 from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
 from jaxest.tune import fit
 

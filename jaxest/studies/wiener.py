@@ -19,10 +19,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest._priors import Gaussian
 from jaxest.models import simulate
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest._priors import Gaussian
 from jaxest.smoothers.steady_state import steady_state_smooth
 from jaxest.smoothers.wiener import WienerSmoother
 from jaxest.systems.wiener_example import ARBITRARY_START, PAPER, PRINTED_ADJ_K, N, paper_model
@@ -78,8 +78,8 @@ def single_realisation(smoother: WienerSmoother, key, model):
 
 def monte_carlo(smoother: WienerSmoother, model, runs: int, key):
     """Mean squared error per smoother over ``runs`` realisations, x(0) ~ N(0, I)."""
-    from jaxest.filters.kalman import KalmanFilter
     from jaxest._run import filter as run_filter
+    from jaxest.filters.kalman import KalmanFilter
     from jaxest.smoothers.rts import rts_smooth
 
     prior = Gaussian(jnp.zeros(2), jnp.eye(2))
