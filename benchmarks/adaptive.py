@@ -35,9 +35,9 @@ def main() -> None:
     args = parser.parse_args()
     jax.config.update("jax_enable_x64", True)
 
+    from jaxest._run import run
     from jaxest.observers.adaptive import DiscreteAdaptiveObserver, ObserverPrior
     from jaxest.report import emit_json
-    from jaxest._run import run
     from jaxest.studies.adaptive import (
         DT,
         fly,

@@ -22,8 +22,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from jaxest.report import emit_json  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
-from jaxest.systems import flight_data  # noqa: E402
-from jaxest.systems import flight_sim as sim  # noqa: E402
+from jaxest.systems import flight_data, flight_sim as sim  # noqa: E402
 
 
 def per_step_times(runs: int, rate: int, dtype_name: str, repeats: int = 3) -> dict:

@@ -22,9 +22,9 @@ import time
 import jax
 import jax.numpy as jnp
 
+from jaxest._run import Gaussian, run
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.report import emit_json
-from jaxest._run import Gaussian, run
 from jaxest.smoothers.rts import rts_smooth
 from jaxest.smoothers.wiener import WienerSmoother
 from jaxest.systems.wiener_example import ARBITRARY_START, paper_model

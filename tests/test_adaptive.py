@@ -10,6 +10,7 @@ import scipy.integrate
 import scipy.linalg
 from jax import enable_x64
 
+from jaxest._run import Status, run
 from jaxest.observers import (
     AdaptiveObserver,
     ContinuousLTV,
@@ -18,7 +19,6 @@ from jaxest.observers import (
     ObserverPrior,
     simulate_closed_loop,
 )
-from jaxest._run import Status, run
 from jaxest.systems.aircraft_linear import aircraft, b747
 
 DT = 0.01

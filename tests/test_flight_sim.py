@@ -5,10 +5,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest.filters import EKF, SVDEKF
 from jaxest._run import Gaussian, Status, run
-from jaxest.systems import flight
-from jaxest.systems import flight_sim as sim
+from jaxest.filters import EKF, SVDEKF
+from jaxest.systems import flight, flight_sim as sim
 from jaxest.systems.flight import N_KIN, PARAMETERS
 
 DEG = np.pi / 180

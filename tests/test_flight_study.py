@@ -41,8 +41,7 @@ def test_delay_estimate_recovers_a_simulated_vane_lag():
     import jax.numpy as jnp
     import numpy as np
 
-    from jaxest.systems import flight
-    from jaxest.systems import flight_sim as sim
+    from jaxest.systems import flight, flight_sim as sim
 
     with jax.enable_x64(True):
         truth = sim.true_flight("elevator", 25, duration=12.0)

@@ -10,10 +10,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest._run import Status, run
+from jaxest import run
 from jaxest.setmembership import fdi
 from jaxest.setmembership.ellipsoid import Ellipsoid
 from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter, set_membership_filter
+from jaxest.setmembership.status import SetStatus as Status
 from jaxest.studies import smf_fdi
 from jaxest.systems import duffing
 
@@ -30,7 +31,7 @@ def _filter_runs(keys, L, closed_form_bound=True, mask=(True, True)):
     def one(key):
         states, ys = smf_fdi.simulate_run(key, L)
         result = run(
-            SetMembershipFilter(), model, fdi.sensor_subset(ys, jnp.asarray(mask)), None, prior
+            SetMembershipFilter(), model, fdi.sensor_subset(ys, jnp.asarray(mask)), prior=prior
         )
         return states, ys, result
 
@@ -81,7 +82,7 @@ def test_unbounded_set_is_reported_not_nan(dtype):
     model = _unstable_model(dtype)
     prior = Ellipsoid(jnp.asarray([0.5, 0.0], dtype), 0.01 * jnp.eye(2, dtype=dtype))
     ys = jnp.zeros((60, 1), dtype)
-    result = jax.jit(lambda ys: set_membership_filter(model, ys, prior))(ys)
+    result = jax.jit(lambda ys: set_membership_filter(model, ys, prior=prior))(ys)
     unbounded = np.asarray(result.unbounded)
     assert unbounded[-1] and not unbounded[0]
     start = np.argmax(unbounded)
@@ -103,12 +104,12 @@ def test_filter_under_jit_vmap_grad(dtype):
         model = BoundedNoiseModel(
             model.f, model.h, jnp.full(2, w), model.measurement_bound, model.f_remainder
         )
-        result = run(SetMembershipFilter(), model, ys[0], None, prior)
+        result = run(SetMembershipFilter(), model, ys[0], prior=prior)
         return jnp.linalg.slogdet(result.shape[-1])[1]
 
     batched = jax.jit(
         jax.vmap(
-            lambda y: run(SetMembershipFilter(), duffing.model(True, dtype), y, None, prior).shape
+            lambda y: run(SetMembershipFilter(), duffing.model(True, dtype), y, prior=prior).shape
         )
     )(ys)
     assert batched.dtype == dtype and batched.shape == (2, 30, 2, 2)
@@ -146,14 +147,14 @@ def test_isolation_decisions_and_scores():
 def test_arguments_are_checked_before_tracing():
     model, prior = duffing.model(), duffing.prior()
     with pytest.raises(ValueError, match="ys"):
-        set_membership_filter(model, jnp.zeros((5, 3)), prior)
+        set_membership_filter(model, jnp.zeros((5, 3)), prior=prior)
     with pytest.raises(ValueError, match="prior.shape"):
-        set_membership_filter(model, jnp.zeros((5, 2)), Ellipsoid(prior.center, -jnp.eye(2)))
+        set_membership_filter(model, jnp.zeros((5, 2)), prior=Ellipsoid(prior.center, -jnp.eye(2)))
     with pytest.raises(ValueError, match="prior"):
-        set_membership_filter(model, jnp.zeros((5, 2)), (prior.center, prior.shape))
+        set_membership_filter(model, jnp.zeros((5, 2)), prior=(prior.center, prior.shape))
     with pytest.raises(ValueError, match="process_bound"):
         bad = BoundedNoiseModel(model.f, model.h, -model.process_bound, model.measurement_bound)
-        set_membership_filter(bad, jnp.zeros((5, 2)), prior)
+        set_membership_filter(bad, jnp.zeros((5, 2)), prior=prior)
 
 
 @pytest.mark.slow

@@ -1,4 +1,4 @@
-"""The nonlinear ellipsoidal set-membership filter (Chai & Sun 2007, §2; NOTES.md §2).
+"""The nonlinear ellipsoidal set-membership filter (Chai & Sun 2007, §2; docs/papers/smf.md).
 
 Model (eqs 1-4): x_{k+1} = f(x_k, u_k) + w_k,  y_k = h(x_k, u_k) + v_k, with unknown but bounded
 noise |w_i| <= wbar_i, |v_i| <= vbar_i and x at the first measurement in the prior ellipsoid.
@@ -35,6 +35,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._run import run
 from jaxest._status import finite_status as check_finite_status
 from jaxest.setmembership.ellipsoid import (
@@ -91,14 +92,14 @@ class SMFState(eqx.Module):
 
 
 class SMFOutput(eqx.Module):
-    center: Float[Array, " n"]
-    shape: Float[Array, "n n"]
-    remainder: Float[Array, " n"]  #: remainder bound of f used in the time update after step k
-    measurement_remainder: Float[Array, " m"]  #: remainder bound of h used at step k
-    status: Int[Array, ""]
+    center: Float[Array, " n"] | None
+    shape: Float[Array, "n n"] | None
+    remainder: Float[Array, " n"] | None  #: remainder bound of f for the time update after k
+    measurement_remainder: Float[Array, " m"] | None  #: remainder bound of h used at step k
+    status: Int[Array, ""] | None
 
 
-class SMFResult(eqx.Module):
+class SMFResult(AbstractResult):
     """Filtered ellipsoids E(center[k], shape[k]) after y_k, and per-step :class:`Status` bits.
 
     ``remainder[k]`` is the bound of f's remainder (eq 11) used to predict from k to k+1 and
@@ -106,11 +107,16 @@ class SMFResult(eqx.Module):
     is +inf on the diagonal (the set is the whole space).
     """
 
-    center: Float[Array, "T n"]
-    shape: Float[Array, "T n n"]
-    remainder: Float[Array, "T n"]
-    measurement_remainder: Float[Array, "T m"]
-    status: Int[Array, " T"]
+    flags = Status
+
+    final_state: SMFState
+    center: Float[Array, "T n"] | None = None
+    shape: Float[Array, "T n n"] | None = None
+    remainder: Float[Array, "T n"] | None = None
+    measurement_remainder: Float[Array, "T m"] | None = None
+    status: Int[Array, " T"] | None = None
+    any_status: Int[Array, ""] | None = None
+    saved: object = None
 
     @property
     def inconsistent(self) -> Bool[Array, " T"]:
@@ -130,7 +136,7 @@ class SMFResult(eqx.Module):
         return inside | self.unbounded
 
 
-class SetMembershipFilter(eqx.Module):
+class SetMembershipFilter(AbstractEstimator):
     """The nonlinear ellipsoidal SMF (module docstring). ``max_radius``: the set counts as
     unbounded once some sqrt(P_ii) exceeds it (default: 1 / sqrt(eps) of the dtype)."""
 
@@ -176,7 +182,10 @@ class SetMembershipFilter(eqx.Module):
         center, shape, _ = self.time_update(model, prior.center, prior.shape, u)
         return Ellipsoid(center, shape)
 
-    def step(self, model, state: SMFState, y, u):
+    def check(self, model, ys, inputs, prior) -> None:
+        check_smf_arguments(model, ys, prior, inputs)
+
+    def step(self, model, state: SMFState, k, y, u, key=None):
         c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u)
         empty = empty & ~state.unbounded
         c_next, P_next, alpha_f = self.time_update(model, c, P, u)
@@ -210,25 +219,29 @@ class SetMembershipFilter(eqx.Module):
 
     def result(self, outputs: SMFOutput, final_state: SMFState) -> SMFResult:
         return SMFResult(
-            outputs.center,
-            outputs.shape,
-            outputs.remainder,
-            outputs.measurement_remainder,
-            outputs.status,
+            final_state=final_state,
+            center=outputs.center,
+            shape=outputs.shape,
+            remainder=outputs.remainder,
+            measurement_remainder=outputs.measurement_remainder,
+            status=outputs.status,
         )
 
 
 def set_membership_filter(
     model: BoundedNoiseModel,
     ys,
+    *,
     prior: Ellipsoid,
     inputs=None,
     estimator: SetMembershipFilter | None = None,
+    **run_options,
 ) -> SMFResult:
     """Run the SMF over ``ys`` (shape (T, m); NaN = no measurement) from ``prior``, the ellipsoid
-    holding the state at the first measurement. Arguments are checked before tracing."""
-    check_smf_arguments(model, ys, prior, inputs)
-    return run(estimator or SetMembershipFilter(), model, jnp.asarray(ys), inputs, prior)
+    holding the state at the first measurement: :func:`jaxest.run` with the default filter.
+    Arguments are checked before tracing."""
+    estimator = estimator or SetMembershipFilter()
+    return run(estimator, model, ys, prior=prior, inputs=inputs, **run_options)
 
 
 def check_smf_arguments(model, ys, prior, inputs):

@@ -23,7 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxest._priors import Gaussian
-from jaxest._run import filter as gaussian_filter, run as run_estimator
+from jaxest._run import run as run_estimator
 from jaxest.filters import EKF
 from jaxest.filters.common import covariance_predict
 from jaxest.models import NonlinearGaussian
@@ -102,13 +102,13 @@ def _one_run(key, biases, closed_form_bound=False):
         states, ys = duffing.simulate(key, bias)
 
         def smf_run(mask):
-            result = run_estimator(smf, model, fdi.sensor_subset(ys, mask), None, prior)
+            result = run_estimator(smf, model, fdi.sensor_subset(ys, mask), prior=prior)
             return result.inconsistent, result.contains(states), result.unbounded
 
         flags = jax.vmap(smf_run)(jnp.asarray(FILTER_MASKS))
         alarms = []
         for ekf, ekf_init in ekfs:
-            post = gaussian_filter(EKF(), ekf, ys, init=ekf_init)
+            post = run_estimator(EKF(), ekf, ys, prior=ekf_init)
             alarms.append(fdi.chi_square_alarms(post.innovation, post.innovation_cov, threshold))
         return (*flags, jnp.stack(alarms))
 
@@ -140,7 +140,7 @@ def single_filter_function(closed_form_bound: bool = False):
 
     def one(key):
         _, ys = simulate_run(key, None)
-        return run_estimator(SetMembershipFilter(), model, ys, None, prior).inconsistent
+        return run_estimator(SetMembershipFilter(), model, ys, prior=prior).inconsistent
 
     return batched_over_runs(one)
 
@@ -230,7 +230,7 @@ def automatic_bound_function():
 
     def scenario(key, bias):
         states, ys = duffing.simulate(key, bias)
-        result = run_estimator(smf, auto, ys, None, prior)
+        result = run_estimator(smf, auto, ys, prior=prior)
         closed_bound = jax.vmap(closed.f_remainder)(result.center, result.shape)[:, 1]
         relative = jnp.max(jnp.abs(result.remainder[:, 1] - closed_bound) / closed_bound)
         return result.inconsistent, relative
@@ -241,8 +241,8 @@ def automatic_bound_function():
         states, ys = duffing.simulate(keys[0], biases[0])
         example = (
             states,
-            run_estimator(smf, auto, ys, None, prior),
-            gaussian_filter(EKF(), ekf, ys, init=ekf_prior(ekf)),
+            run_estimator(smf, auto, ys, prior=prior),
+            run_estimator(EKF(), ekf, ys, prior=ekf_prior(ekf)),
         )
         return flags, jnp.max(relative), example
 
