@@ -35,7 +35,7 @@ def main() -> None:
     args = parser.parse_args()
     jax.config.update("jax_enable_x64", True)
 
-    from jaxest._run import run
+    from jaxest import run
     from jaxest.observers.adaptive import DiscreteAdaptiveObserver, ObserverPrior
     from jaxest.report import emit_json
     from jaxest.studies.adaptive import (
@@ -59,16 +59,20 @@ def main() -> None:
         ys, us = data.observations, data.inputs
         steps = ys.shape[1]
 
-        continuous = eqx.filter_jit(lambda y, u: run(observer, plant.model, y, u, prior).theta)
+        continuous = eqx.filter_jit(
+            lambda y, u: run(observer, plant.model, y, inputs=u, prior=prior).theta
+        )
         batched = eqx.filter_jit(
-            jax.vmap(lambda y, u: run(observer, plant.model, y, u, prior).theta)
+            jax.vmap(lambda y, u: run(observer, plant.model, y, inputs=u, prior=prior).theta)
         )
         dmodel = plant.model.discretize(DT)
         n, m, p = plant.model.A.shape[0], plant.model.C.shape[0], plant.theta.shape[0]
         dobs = DiscreteAdaptiveObserver(Q=1e-4 * jnp.eye(n), R=1e-2 * jnp.eye(m), forgetting=0.99)
         dprior = ObserverPrior(jnp.zeros(n), jnp.ones(p), jnp.eye(n), jnp.eye(p))
-        discrete = eqx.filter_jit(lambda y, u: run(dobs, dmodel, y, u, dprior).theta)
-        dbatched = eqx.filter_jit(jax.vmap(lambda y, u: run(dobs, dmodel, y, u, dprior).theta))
+        discrete = eqx.filter_jit(lambda y, u: run(dobs, dmodel, y, inputs=u, prior=dprior).theta)
+        dbatched = eqx.filter_jit(
+            jax.vmap(lambda y, u: run(dobs, dmodel, y, inputs=u, prior=dprior).theta)
+        )
 
         single = _timed(continuous, ys[0], us[0])
         many = _timed(batched, ys, us, repeats=1)

@@ -10,13 +10,14 @@ import scipy.integrate
 import scipy.linalg
 from jax import enable_x64
 
-from jaxest._run import Status, run
+from jaxest import run
 from jaxest.observers import (
     AdaptiveObserver,
     ContinuousLTV,
     DiscreteAdaptiveObserver,
     InputEffectiveness,
     ObserverPrior,
+    ObserverStatus as Status,
     simulate_closed_loop,
 )
 from jaxest.systems.aircraft_linear import aircraft, b747
@@ -80,7 +81,7 @@ def test_closed_loop_equals_open_loop_run():
         sim = simulate_closed_loop(
             obs, model, theta, jnp.asarray(X0), prior, Kbar, multisine(300), key, 0.01
         )
-        again = run(obs, model, sim.observations, sim.inputs, prior)
+        again = run(obs, model, sim.observations, inputs=sim.inputs, prior=prior)
         np.testing.assert_allclose(again.theta, sim.estimate.theta, rtol=1e-12, atol=1e-14)
         np.testing.assert_allclose(again.x, sim.estimate.x, rtol=1e-12, atol=1e-14)
 
@@ -116,10 +117,10 @@ def test_step_integrates_the_sampled_observer_like_scipy():
         state = obs.init(model, prior)
         # take a few steps so that Gamma is non-zero, then compare one step
         for k in range(3):
-            state, _ = obs.step(model, state, jnp.array([0.2 * k + 0.1]), jnp.array([1.0 - k]))
+            state, _ = obs.step(model, state, k, jnp.array([0.2 * k + 0.1]), jnp.array([1.0 - k]))
         y, u = np.array([0.7]), np.array([0.4])
-        t0 = float(state.t)
-        new, _ = obs.step(model, state, jnp.asarray(y), jnp.asarray(u))
+        t0 = float(obs.time(3))
+        new, _ = obs.step(model, state, 3, jnp.asarray(y), jnp.asarray(u))
 
         def A(t):
             return A0 + 0.3 * np.sin(t) * np.array([[0.0, 0.0], [1.0, 0.0]])
@@ -202,7 +203,11 @@ def test_sampled_observer_tends_to_continuous_eq17():
             )
             # u varies within a sample here (continuous truth above); the observer holds u_k
             res = run(
-                obs, model, jnp.asarray(xs @ C.T), us, ObserverPrior(jnp.zeros(2), jnp.zeros(1))
+                obs,
+                model,
+                jnp.asarray(xs @ C.T),
+                inputs=us,
+                prior=ObserverPrior(jnp.zeros(2), jnp.zeros(1)),
             )
             stride = int(round(0.01 / dt))
             errors.append(np.max(np.abs(np.asarray(res.theta[::stride, 0]) - ref.y[4])))
@@ -273,7 +278,7 @@ def test_discrete_form_matches_numpy_and_converges():
         dmodel = model.discretize(DT)
         dobs = DiscreteAdaptiveObserver(Q=1e-4 * jnp.eye(4), R=1e-2 * jnp.eye(3), forgetting=0.99)
         dprior = ObserverPrior(jnp.zeros(4), jnp.ones(1), jnp.eye(4), 10.0 * jnp.eye(1))
-        res = run(dobs, dmodel, sim.observations, sim.inputs, dprior)
+        res = run(dobs, dmodel, sim.observations, inputs=sim.inputs, prior=dprior)
         Phi = np.stack([np.asarray(dmodel.phi(k, u, None)) for k, u in enumerate(sim.inputs[:400])])
         xs, thetas = numpy_discrete_observer(
             np.asarray(dmodel.F),
@@ -303,7 +308,7 @@ def _loss(obs, model, prior, Kbar, theta, r):
 
 
 def _discrete_loss(obs, model, prior, ys, us):
-    return jnp.mean((run(obs, model, ys, us, prior).theta - 2.0) ** 2)
+    return jnp.mean((run(obs, model, ys, inputs=us, prior=prior).theta - 2.0) ** 2)
 
 
 @pytest.mark.parametrize("x64", [False, True])

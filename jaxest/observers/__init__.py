@@ -2,6 +2,7 @@
 
 from jaxest.observers.adaptive import (
     AdaptiveObserver,
+    AdaptiveOutput,
     AdaptiveResult,
     ClosedLoopRun,
     ContinuousLTV,
@@ -11,9 +12,12 @@ from jaxest.observers.adaptive import (
     ObserverPrior,
     simulate_closed_loop,
 )
+from jaxest.observers.excitation import ObserverStatus
 
 __all__ = [
     "AdaptiveObserver",
+    "AdaptiveOutput",
+    "ObserverStatus",
     "AdaptiveResult",
     "ClosedLoopRun",
     "ContinuousLTV",

@@ -20,7 +20,7 @@ innovation keeps the truth a fixed point of the sampled observer (noise-free, x_
 theta_hat = theta stay so exactly); as dt -> 0 the scheme tends to eq 17 driven by continuous y.
 
 :class:`DiscreteAdaptiveObserver` is the discrete-time form (Zhang 2018, "adaptive Kalman
-filter"; NOTES.md section 5) for x_{k+1} = F x_k + B u_k + Phi_k theta, y_k = H x_k.
+filter"; docs/papers/adaptive.md) for x_{k+1} = F x_k + B u_k + Phi_k theta, y_k = H x_k.
 
 M, Sigma, Q and R are array fields of the observer: gradients flow to them (``eqx.filter_grad``
 over the observer); :func:`jaxest.tune.fit` tunes them (see :mod:`jaxest.studies.adaptive`).
@@ -37,6 +37,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_matrix
+from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status as check_finite_status
 from jaxest.linalg import symmetrize
 from jaxest.observers import excitation
@@ -149,22 +150,47 @@ class ObserverPrior(eqx.Module):
     theta_cov: Float[Array, "p p"] | None = None
 
 
-class AdaptiveResult(eqx.Module):
+class AdaptiveOutput(eqx.Module):
+    """One sample's estimates (the fields of :class:`AdaptiveResult`, unstacked)."""
+
+    x: Float[Array, " n"] | None
+    theta: Float[Array, " p"] | None
+    Gamma: Float[Array, "n p"] | None
+    innovation: Float[Array, " m"] | None
+    excitation: Float[Array, ""] | None
+    status: Int[Array, ""] | None
+
+
+class AdaptiveResult(AbstractResult):
     """Estimates at the sample times: ``x`` x_hat(t_k), ``theta`` theta_hat(t_k), ``Gamma``
     Gamma(t_k), ``innovation`` y_k - C x_hat, ``excitation`` the smallest eigenvalue of the eq 16
-    Gramian over the window ending at t_k (NaN for the discrete form), ``status`` bits."""
+    Gramian over the window ending at t_k (NaN for the discrete form), ``status`` bits
+    (:class:`~jaxest.observers.ObserverStatus`)."""
 
-    x: Float[Array, "T n"]
-    theta: Float[Array, "T p"]
-    Gamma: Float[Array, "T n p"]
-    innovation: Float[Array, "T m"]
-    excitation: Float[Array, " T"]
-    status: Int[Array, " T"]
+    flags = Status
 
-    @property
-    def ok(self) -> jax.Array:
-        """True where every step finished with status OK."""
-        return jnp.all(self.status == Status.OK, axis=-1)
+    final_state: object
+    x: Float[Array, "T n"] | None = None
+    theta: Float[Array, "T p"] | None = None
+    Gamma: Float[Array, "T n p"] | None = None
+    innovation: Float[Array, "T m"] | None = None
+    excitation: Float[Array, " T"] | None = None
+    status: Int[Array, " T"] | None = None
+    any_status: Int[Array, ""] | None = None
+    saved: object = None
+
+
+def adaptive_result(outputs: AdaptiveOutput, final_state) -> AdaptiveResult:
+    """The stacked outputs and the final state as an :class:`AdaptiveResult`."""
+    return AdaptiveResult(
+        final_state=final_state,
+        x=outputs.x,
+        theta=outputs.theta,
+        Gamma=outputs.Gamma,
+        innovation=outputs.innovation,
+        excitation=outputs.excitation,
+        status=outputs.status,
+    )
 
 
 def _rk4(field, z, t, h, substeps: int):
@@ -211,7 +237,6 @@ def _check_dimensions(M, Sigma, Q, R, K, prior, n, m, p):
 
 
 class AdaptiveState(eqx.Module):
-    t: Float[Array, ""]
     x: Float[Array, " n"]
     theta: Float[Array, " p"]
     Gamma: Float[Array, "n p"]
@@ -219,7 +244,7 @@ class AdaptiveState(eqx.Module):
     window: excitation.ExcitationWindow
 
 
-class AdaptiveObserver(eqx.Module):
+class AdaptiveObserver(AbstractEstimator):
     """Zhang's continuous-time adaptive observer, sampled every ``dt`` (eqs 12, 17, 31-32, 16).
 
     Give ``Q`` and ``R`` for the Riccati gain K = P C^T R^{-1} (P integrated by eq 32 from
@@ -236,6 +261,7 @@ class AdaptiveObserver(eqx.Module):
     substeps: int = eqx.field(static=True, default=4)
     excitation_window: int = eqx.field(static=True, default=200)
     excitation_threshold: float = eqx.field(static=True, default=1e-6)
+    t0: float = eqx.field(static=True, default=0.0)
 
     def __check_init__(self):
         _check_tuning(self.M, self.Sigma, self.Q, self.R, self.K)
@@ -244,7 +270,12 @@ class AdaptiveObserver(eqx.Module):
                 f"dt: must be positive with substeps >= 1, got {self.dt}, {self.substeps}"
             )
 
-    def init(self, model: ContinuousLTV, prior: ObserverPrior, t0: float = 0.0) -> AdaptiveState:
+    def time(self, k):
+        """t_k = t0 + k dt."""
+        return self.t0 + k * self.dt
+
+    def init(self, model: ContinuousLTV, prior: ObserverPrior) -> AdaptiveState:
+        t0 = self.t0
         if not isinstance(prior, ObserverPrior):
             raise ValueError(
                 f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
@@ -264,7 +295,6 @@ class AdaptiveObserver(eqx.Module):
             check_matrix("prior.P", prior.P, (n, n), spd=True)
             P = jnp.asarray(prior.P, dtype)
         return AdaptiveState(
-            t=jnp.asarray(t0, dtype),
             x=jnp.asarray(prior.x, dtype),
             theta=jnp.asarray(prior.theta, dtype),
             Gamma=jnp.zeros((n, p), dtype),
@@ -278,15 +308,16 @@ class AdaptiveObserver(eqx.Module):
             return self.K
         return P @ C.T @ R_inv
 
-    def step(self, model: ContinuousLTV, state: AdaptiveState, y, u):
+    def step(self, model: ContinuousLTV, state: AdaptiveState, k, y, u, key=None):
         """Estimates at t_k, then integrate eqs 12, 17, 32 over [t_k, t_k + dt]."""
-        _, _, C_k = model.matrices(state.t)
+        t = self.time(k)
+        _, _, C_k = model.matrices(t)
         e = y - C_k @ state.x
         level = excitation.excitation_level(state.window)
         status = check_finite_status(state.x, state.theta) | excitation.excitation_status(
             state.window, level, self.excitation_threshold
         )
-        output = AdaptiveResult(state.x, state.theta, state.Gamma, e, level, status)
+        output = AdaptiveOutput(state.x, state.theta, state.Gamma, e, level, status)
         # one inverse per sample, not one solve per Runge-Kutta stage (R is small, SPD)
         R_inv = None if self.K is not None else jnp.linalg.inv(self.R)
 
@@ -307,9 +338,8 @@ class AdaptiveObserver(eqx.Module):
 
         p = state.theta.shape[0]
         z0 = (state.x, state.theta, state.Gamma, state.P, jnp.zeros((p, p), state.x.dtype))
-        x, theta, Gamma, P, increment = _rk4(field, z0, state.t, self.dt, self.substeps)
+        x, theta, Gamma, P, increment = _rk4(field, z0, t, self.dt, self.substeps)
         new = AdaptiveState(
-            t=state.t + self.dt,
             x=x,
             theta=theta,
             Gamma=Gamma,
@@ -318,12 +348,11 @@ class AdaptiveObserver(eqx.Module):
         )
         return new, output
 
-    def result(self, outputs: AdaptiveResult, final_state) -> AdaptiveResult:
-        return outputs
+    def result(self, outputs: AdaptiveOutput, final_state) -> AdaptiveResult:
+        return adaptive_result(outputs, final_state)
 
 
 class DiscreteState(eqx.Module):
-    k: Int[Array, ""]
     x_pred: Float[Array, " n"]
     P_pred: Float[Array, "n n"]
     theta: Float[Array, " p"]
@@ -331,8 +360,8 @@ class DiscreteState(eqx.Module):
     theta_cov: Float[Array, "p p"]
 
 
-class DiscreteAdaptiveObserver(eqx.Module):
-    """The discrete-time adaptive observer (adaptive Kalman filter; NOTES.md section 5).
+class DiscreteAdaptiveObserver(AbstractEstimator):
+    """The discrete-time adaptive observer (adaptive Kalman filter; docs/papers/adaptive.md).
 
     Kalman part with weights ``Q``, ``R``; the parameter part is recursive least squares with
     forgetting factor ``forgetting`` (lambda in (0, 1]) on the regressor Omega_k = H Upsilon_k::
@@ -377,7 +406,6 @@ class DiscreteAdaptiveObserver(eqx.Module):
                 raise ValueError(f"{name}: expected shape {want}, got {np.shape(value)}")
         dtype = jnp.result_type(prior.x)
         return DiscreteState(
-            k=jnp.zeros((), jnp.int32),
             x_pred=jnp.asarray(prior.x, dtype),
             P_pred=jnp.asarray(prior.P, dtype),
             theta=jnp.asarray(prior.theta, dtype),
@@ -385,8 +413,8 @@ class DiscreteAdaptiveObserver(eqx.Module):
             theta_cov=jnp.asarray(prior.theta_cov, dtype),
         )
 
-    def step(self, model: DiscreteLTV, state: DiscreteState, y, u):
-        F, B, H = model.matrices(state.k)
+    def step(self, model: DiscreteLTV, state: DiscreteState, k, y, u, key=None):
+        F, B, H = model.matrices(k)
         n = F.shape[-1]
         S = H @ state.P_pred @ H.T + self.R
         K = jnp.linalg.solve(S, H @ state.P_pred).T
@@ -401,21 +429,20 @@ class DiscreteAdaptiveObserver(eqx.Module):
         theta = state.theta + gain @ e
         Ups = I_KH @ state.Ups_pred
         x = state.x_pred + K @ e + Ups @ (theta - state.theta)
-        Phi = model.phi(state.k, u, y)
+        Phi = model.phi(k, u, y)
         status = check_finite_status(x, theta, P, theta_cov)
         nan = jnp.full((), jnp.nan, x.dtype)
         new = DiscreteState(
-            k=state.k + 1,
             x_pred=F @ x + B @ u + Phi @ theta,
             P_pred=symmetrize(F @ P @ F.T + self.Q),
             theta=theta,
             Ups_pred=F @ Ups + Phi,
             theta_cov=theta_cov,
         )
-        return new, AdaptiveResult(x, theta, Ups, e, nan, status)
+        return new, AdaptiveOutput(x, theta, Ups, e, nan, status)
 
-    def result(self, outputs: AdaptiveResult, final_state) -> AdaptiveResult:
-        return outputs
+    def result(self, outputs: AdaptiveOutput, final_state) -> AdaptiveResult:
+        return adaptive_result(outputs, final_state)
 
 
 class ClosedLoopRun(eqx.Module):
@@ -443,7 +470,7 @@ def simulate_closed_loop(
     ``reference`` (T x l) is the added excitation r_k; u_k is held over each sample interval and
     the truth is propagated exactly (:meth:`ContinuousLTV.propagator`). y_k = C x(t_k) + v_k with
     v_k ~ N(0, diag(noise_std^2)) when ``key`` is given. The observer sees only (y_k, u_k); its
-    ``step`` is the one :func:`jaxest.run.run` drives, so re-running it open loop on
+    ``step`` is the one :func:`jaxest.run` drives, so re-running it open loop on
     (``observations``, ``inputs``) gives the same estimates.
     """
     state = observer.init(model, prior)
@@ -456,14 +483,18 @@ def simulate_closed_loop(
 
     def body(carry, args):
         x, obs = carry
-        r, v = args
-        _, _, C = model.matrices(obs.t)
+        k, r, v = args
+        t = observer.time(k)
+        _, _, C = model.matrices(t)
         y_true = C @ x
         y = y_true + v
         u = -feedback_gain @ obs.x + r
-        x_next = propagate(x, u, y_true, theta, obs.t)
-        obs, out = observer.step(model, obs, y, u)
+        x_next = propagate(x, u, y_true, theta, t)
+        obs, out = observer.step(model, obs, k, y, u)
         return (x_next, obs), (x, y, u, out)
 
-    _, (xs, ys, us, outs) = jax.lax.scan(body, (jnp.asarray(x0, dtype), state), (reference, noise))
-    return ClosedLoopRun(xs, ys, us, outs)
+    steps = jnp.arange(T)
+    (_, final), (xs, ys, us, outs) = jax.lax.scan(
+        body, (jnp.asarray(x0, dtype), state), (steps, reference, noise)
+    )
+    return ClosedLoopRun(xs, ys, us, observer.result(outs, final))

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxest._run import Status
+from jaxest.observers import ObserverStatus as Status
 from jaxest.observers.adaptive import (
     AdaptiveObserver,
     ContinuousLTV,
