@@ -22,7 +22,7 @@ import time
 import jax
 import jax.numpy as jnp
 
-from jaxest._run import Gaussian, run
+from jaxest import Gaussian, run
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.report import emit_json
 from jaxest.smoothers.rts import rts_smooth
@@ -70,7 +70,7 @@ def main(argv=None):
         return smoother.smooth(ys, optimal, final)
 
     def rts(ys):
-        return rts_smooth(model, run(KalmanFilter(), model, ys, None, prior)).mean
+        return rts_smooth(model, run(KalmanFilter(), model, ys, prior=prior)).mean
 
     rows = []
     for n in args.sizes:

@@ -1,5 +1,6 @@
 """The flight-path reconstruction model (eq 26-33) against independent formulations."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -128,7 +129,7 @@ def test_jacobians_match_finite_differences():
     mean, F, G, Q = model.transition(x, u, 0)
     y, H, R = model.observation(x, u, 0)
     scale = np.concatenate([[1.0] * 3, [1e-3] * 3, [1.0], [1e-3] * 16])
-    f_jit, h_jit = jax.jit(model.f), jax.jit(model.h)
+    f_jit, h_jit = eqx.filter_jit(model.f), eqx.filter_jit(model.h)
     f = lambda z: np.asarray(f_jit(jnp.asarray(z), u))
     F_fd = (
         _central_difference(lambda d: f(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale

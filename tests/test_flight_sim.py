@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest._run import Gaussian, Status, run
+from jaxest import Gaussian, Status, run
 from jaxest.filters import EKF, SVDEKF
 from jaxest.systems import flight, flight_sim as sim
 from jaxest.systems.flight import N_KIN, PARAMETERS
@@ -83,9 +83,7 @@ def small_monte_carlo(estimator, runs=4, dtype=jnp.float64):
         params = sim.draw_parameters(k1)
         record = sim.corrupt(truth, params, k2)
         m0 = sim.initial_guess(record.true_states[0], k3, np.sqrt(np.diag(P0)[:N_KIN]))
-        res = run(estimator, model, record.measurements.astype(dtype),
-                  flight.interval_inputs(record.measured_inputs).astype(dtype),
-                  Gaussian(m0.astype(dtype), P0.astype(dtype)))  # fmt: skip
+        res = run(estimator, model, record.measurements.astype(dtype), inputs=flight.interval_inputs(record.measured_inputs).astype(dtype), prior=Gaussian(m0.astype(dtype), P0.astype(dtype)))  # fmt: skip
         err = (res.mean[-1] - record.true_states[-1]).astype(jnp.float64)
         P = res.cov[-1].astype(jnp.float64)
         return err, P, jnp.bitwise_or.reduce(res.status)
@@ -131,7 +129,7 @@ def test_loglik_derivative_wrt_noise_levels_matches_finite_differences():
 
     def loglik(log_std):
         model = flight.flight_model(0.1, jnp.exp(log_std[:6]), jnp.exp(log_std[6:]), sim.LEVER_ARMS)
-        return run(SVDEKF(), model, record.measurements, inputs, prior).loglik
+        return run(SVDEKF(), model, record.measurements, inputs=inputs, prior=prior).loglik
 
     z = jnp.log(jnp.concatenate([jnp.asarray(sim.INPUT_STD), jnp.asarray(sim.OUTPUT_STD)]))
     direction = jax.random.normal(jax.random.key(5), (12,), z.dtype)

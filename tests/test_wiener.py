@@ -94,7 +94,7 @@ def test_arma_innovation_model_lemma2(make_model):
         ys = simulate(model, 60)
         arma = arma_innovation_model(steady_state_gain(model))
         eps = je.run(
-            SteadyStateKalmanFilter(), model, ys, None, je.Gaussian(jnp.ones(n), jnp.eye(n))
+            SteadyStateKalmanFilter(), model, ys, prior=je.Gaussian(jnp.ones(n), jnp.eye(n))
         ).innovation
         lhs = lagged_sum(arma.ar, ys)
         rhs = lagged_sum(arma.ma[:, None, None] * jnp.eye(ys.shape[1]), eps)
@@ -104,7 +104,9 @@ def test_arma_innovation_model_lemma2(make_model):
 def numpy_rts(model, ys, m0, P0):
     """Plain NumPy Kalman filter + Rauch-Tung-Striebel smoother (an independent reference)."""
     F, H, Q, R = (np.asarray(a) for a in (model.F, model.H, model.Q, model.R))
-    filtered = kalman_filter(F, H, Q, R, m0, P0, np.asarray(ys), G=np.asarray(model.noise_gain(0)))
+    filtered = kalman_filter(
+        F, H, Q, R, m0, P0, np.asarray(ys), G=np.asarray(model.process_noise(None, None, 0)[0])
+    )
     return rts_smoother(F, *filtered[:4])[0]
 
 
@@ -141,8 +143,8 @@ def test_steady_state_filter_matches_kalman_filter_from_sigma():
         ys = simulate(model, 40)
         Sigma = steady_state_gain(model).Sigma
         prior = je.Gaussian(jnp.array([0.5, -0.5]), Sigma)
-        ours = je.filter(SteadyStateKalmanFilter(), model, ys, init=prior)
-        ref = je.filter(KalmanFilter(), model, ys, init=prior)
+        ours = je.run(SteadyStateKalmanFilter(), model, ys, prior=prior)
+        ref = je.run(KalmanFilter(), model, ys, prior=prior)
         for field in (
             "mean",
             "cov",

@@ -26,7 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxest._run import Gaussian, Status, run as run_filter
+from jaxest._priors import Gaussian
+from jaxest._run import run as run_filter
+from jaxest._status import Status
 from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF
 from jaxest.plot import plt, save
 from jaxest.progress import Progress
@@ -114,7 +116,7 @@ def model_for(rate_hz, dtype, noise_scale=1.0, lever_arms=sim.LEVER_ARMS, output
 def run_metrics(estimator, model, ys, inputs, mean0, P0, truth, settle: int):
     """Per-run summary of one filter run: squared state errors averaged over time after ``settle``
     steps, final parameter errors and standard deviations, mean NEES, status."""
-    result = run_filter(estimator, model, ys, inputs, Gaussian(mean0, P0))
+    result = run_filter(estimator, model, ys, inputs=inputs, prior=Gaussian(mean0, P0))
     err = (result.mean - truth).astype(jnp.float64)
     cov = result.cov.astype(jnp.float64)
     nees = jax.vmap(lambda e, P: e @ jnp.linalg.solve(P, e))(err, cov)
@@ -205,7 +207,9 @@ def single_run_figure(path, truth_flight, rate_hz, key, title):
     batch = simulated_batch(truth_flight, 1, key, jnp.float64)
     ys, inputs, mean0, truth = (a[0] for a in batch)
     model = model_for(rate_hz, jnp.float64)
-    result = run_filter(SVDEKF(), model, ys, inputs, Gaussian(mean0, prior_cov(jnp.float64)))
+    result = run_filter(
+        SVDEKF(), model, ys, inputs=inputs, prior=Gaussian(mean0, prior_cov(jnp.float64))
+    )
     computed = jax.vmap(model.h)(result.mean, inputs)
     plot_states_and_fits(path, np.asarray(truth_flight.t), np.asarray(truth), np.asarray(result.mean),
                          np.asarray(ys), np.asarray(computed), title)  # fmt: skip
@@ -236,7 +240,7 @@ def reconstruct(data, input_std, output_std, estimator=None):
     inputs = flight.interval_inputs(jnp.asarray(data.inputs))
     est = SVDEKF() if estimator is None else estimator
     prior = real_prior(data)
-    result = run_filter(est, model, jnp.asarray(data.outputs), inputs, prior)
+    result = run_filter(est, model, jnp.asarray(data.outputs), inputs=inputs, prior=prior)
     return result, model, inputs
 
 
@@ -268,7 +272,7 @@ def aligned(data: flight_data.FlightData, delays) -> flight_data.FlightData:
 def _delay_profile(model, outputs, inputs, prior, candidates, dt, limits):
     def loglik(delays):
         ys = flight_data.advance_channels(outputs, dt, delays, limits)
-        return run_filter(SVDEKF(), model, ys, inputs, prior).loglik
+        return run_filter(SVDEKF(), model, ys, inputs=inputs, prior=prior).loglik
 
     return jax.vmap(loglik)(candidates)
 
@@ -384,7 +388,7 @@ def tune_noise(
 
     def loss(noise):  # minus the log-likelihood per measurement
         model = noise.model(dt, lever_arms)
-        return -run_filter(SVDEKF(), model, data_ys, inputs, prior).loglik / n_obs
+        return -run_filter(SVDEKF(), model, data_ys, inputs=inputs, prior=prior).loglik / n_obs
 
     start = NoiseLevels(
         jnp.diag(jnp.asarray(input_std) ** 2), jnp.diag(jnp.asarray(output_std) ** 2)

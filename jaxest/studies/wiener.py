@@ -78,7 +78,7 @@ def single_realisation(smoother: WienerSmoother, key, model):
 
 def monte_carlo(smoother: WienerSmoother, model, runs: int, key):
     """Mean squared error per smoother over ``runs`` realisations, x(0) ~ N(0, I)."""
-    from jaxest._run import filter as run_filter
+    from jaxest._run import run as run_filter
     from jaxest.filters.kalman import KalmanFilter
     from jaxest.smoothers.rts import rts_smooth
 
@@ -90,7 +90,7 @@ def monte_carlo(smoother: WienerSmoother, model, runs: int, key):
         ys = sim.y
         steady = steady_state_smooth(model, ys, prior, smoother.gain)  # eq 15
         optimal, final = smoother.start_from(steady)
-        rts = rts_smooth(model, run_filter(KalmanFilter(), model, ys, init=prior))
+        rts = rts_smooth(model, run_filter(KalmanFilter(), model, ys, prior=prior))
         estimates = {
             "rts": rts.mean,
             "steady_state": steady.mean,
