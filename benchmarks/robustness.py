@@ -1,4 +1,4 @@
-"""Ill-conditioned measurement update (Dyer-McReynolds / Grewal-Andrews, NOTES.md section 1).
+"""Ill-conditioned measurement update (Dyer-McReynolds / Grewal-Andrews, docs/papers/svd_ekf.md).
 
 P0 = I3, H = [[1, 1, 1], [1, 1, 1 + d]], R = d^2 I2, one update; relative error (Frobenius) of
 P+ against the closed form, for every filter ("kf" = conventional covariance KF, "svd_ekf" = the

@@ -6,7 +6,7 @@ Prints ``{"study_seconds", "compile_seconds", "jaxest_runs_per_second", "numpy_r
 "ratio"}``: the whole smf-fdi Monte Carlo (all L, all filters, the EKF baseline) after compilation,
 and the runs per second of one SMF over the Duffing data, jaxest under ``vmap`` against the
 straightforward NumPy loop below (same filter, same process). The NumPy filter is written from
-NOTES.md §2 with the printed (unnormalised) eq 36, and the tests use it as an independent reference.
+docs/papers/smf.md with the printed (unnormalised) eq 36, and the tests use it as an independent reference.
 """
 
 from __future__ import annotations

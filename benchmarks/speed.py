@@ -1,7 +1,7 @@
 """jaxest against dynamax in one process, on the same problems (issue: core, acceptance).
 
 Problems: ``linear_4x2`` (n = 4, m = 2 random stable system) and ``duffing_ekf`` (the Duffing map
-of NOTES.md section 2 with Gaussian noise), T = 1000. Modes: one sequence, and 200 runs under
+of docs/papers/smf.md with Gaussian noise), T = 1000. Modes: one sequence, and 200 runs under
 ``vmap`` with a different process covariance per run. Passes: forward (log-likelihood and
 filtered means) and ``value_and_grad`` of the log-likelihood with respect to the Q scale.
 Per-step time = wall time / (runs * T), best of several repeats after compilation.

@@ -5,7 +5,7 @@ isotropic Q), and ``jnp.linalg.svd``'s derivative divides by differences of sing
 is NaN there. Estimators whose outputs depend on P only through U D^2 U^T are differentiated at the
 covariance level instead: :func:`factor_psd` and :func:`cov_tangent_to_factor` choose, for a
 covariance tangent dP, the factor tangent dU = 1/2 dP U D^-2, dD = 0, which reproduces dP exactly
-(dU D^2 U^T + U D^2 dU^T = dP) and is finite whatever the multiplicities (NOTES.md section 1).
+(dU D^2 U^T + U D^2 dU^T = dP) and is finite whatever the multiplicities (docs/papers/svd_ekf.md).
 """
 
 from __future__ import annotations

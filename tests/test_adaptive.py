@@ -242,7 +242,7 @@ def test_excitation_lost_without_reference():
 
 
 def numpy_discrete_observer(F, B, H, Phi, Q, R, lam, x, P, theta, Sp, ys, us):
-    """NOTES.md section 5 in its own ordering: predict with (u_{k-1}, Phi_{k-1}), then update."""
+    """docs/papers/adaptive.md in its own ordering: predict with (u_{k-1}, Phi_{k-1}), then update."""
     n, p = F.shape[0], theta.shape[0]
     Ups = np.zeros((n, p))
     xs, thetas = [], []

@@ -204,7 +204,7 @@ def test_gradients_match_finite_differences(Filter):
 
 @pytest.mark.parametrize("Filter", [SVDEKF, ImprovedSVDKF], ids=["SVDEKF", "ImprovedSVDKF"])
 def test_svd_gradients_finite_with_repeated_singular_values(Filter):
-    """P0 = c I and isotropic Q: jnp.linalg.svd's own derivative is NaN there (NOTES.md 1)."""
+    """P0 = c I and isotropic Q: jnp.linalg.svd's own derivative is NaN there (docs/papers/svd_ekf.md)."""
     model, _, sim = linear_problem(seed=9, n=3, m=2, T=20)
 
     def loglik(Filter, q, c):
@@ -222,7 +222,7 @@ def test_svd_gradients_finite_with_repeated_singular_values(Filter):
 
 
 def test_svd_filters_survive_where_kf_fails():
-    """The Dyer-McReynolds test of NOTES.md section 1 at d = 1e-9 (float64)."""
+    """The Dyer-McReynolds test of docs/papers/svd_ekf.md at d = 1e-9 (float64)."""
     for Filter in (SVDEKF, ImprovedSVDKF):
         assert posterior_error(Filter, 1e-9) < 1e-5
     assert not posterior_error(KalmanFilter, 1e-9) < 1e-2  # NaN or O(1) error

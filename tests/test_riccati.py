@@ -56,7 +56,7 @@ def test_float32_stays_float32_and_is_accurate():
 
 
 def test_paper_filter_riccati_eq5():
-    """The Wiener paper's example (NOTES.md section 3): Sigma from the filter form of eq 5."""
+    """The Wiener paper's example (docs/papers/wiener.md): Sigma from the filter form of eq 5."""
     with enable_x64(True):
         Phi = np.array([[0.2, 0.1], [0.0, 1.0]])
         Gamma = np.array([[1.0], [1.0]])

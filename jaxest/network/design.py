@@ -10,7 +10,7 @@ the permutations of eqs 20-22: every solution is
 (eq 18). ``phi_i`` is kept as a q x q matrix whose rows outside the null space are zero, so shapes
 do not depend on ranks. The error e = x - x^ of all nodes obeys e' = Phi e + F w - G v exactly
 (eq 37) with Phi_ii = Gamma_i = A_i - G_i H_i1 + (C_i - G_i H_i2) L_ii (self-coupling included,
-NOTES 4), Phi_ij = B_ij = (C_i - G_i H_i2) L_ij for j in C_i and 0 otherwise, so the joint
+docs/papers/network.md), Phi_ij = B_ij = (C_i - G_i H_i2) L_ij for j in C_i and 0 otherwise, so the joint
 covariance obeys
 
     P' = Phi P + P Phi^T + F Q F^T + G R G^T,   P(0) = blkdiag(Sigma_i(0))         (eqs 28-31)
@@ -107,7 +107,7 @@ def measurement_cross_covariance(P, Hbar):
 
 
 def optimal_gain(system, constraint: GainConstraint, Hbar, P) -> Float[Array, "N n q"]:
-    """Step 4 of the theorem (corrected, NOTES 4) followed by eq 18: the gains G_i (N, n, q)."""
+    """Step 4 of the theorem (corrected, docs/papers/network.md) followed by eq 18: the gains G_i (N, n, q)."""
     K = measurement_cross_covariance(P, Hbar)
     B, phi = constraint.particular, constraint.phi
     free = (K - B @ system.R) @ jnp.swapaxes(phi, -1, -2)
@@ -289,7 +289,7 @@ def steady_state(
     max_steps: int = 100_000,
 ) -> SteadyState:
     """Integrate eqs 28-31 from P(0) = blkdiag(cov0) (zero if None) until P' vanishes (diffrax
-    steady-state event), as NOTES 4 recommends over a fixed-point Lyapunov iteration."""
+    steady-state event), as docs/papers/network.md recommends over a fixed-point Lyapunov iteration."""
     if len(system.switch_times) > 1 or len(structure.switch_times) > 1:
         raise ValueError("system: steady_state needs a constant system and structure; use design()")
     check_existence(system, structure)

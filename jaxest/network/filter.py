@@ -1,7 +1,7 @@
 """The network-structured filter (eq 9) on sampled data, on one device or one node per device.
 
 Node i runs x^_i' = Gamma_i x^_i + sum_{j in C_i} B_ij x^_j + G_i y_i (eq 9, with eqs 11-12 and
-the self-coupling of NOTES 4), written in the equivalent innovation form
+the self-coupling of docs/papers/network.md), written in the equivalent innovation form
 
     x^_i' = A_i x^_i + C_i z^_i + G_i (y_i - H_i1 x^_i - H_i2 z^_i),
     z^_i  = L_ii x^_i + sum_{j in C_i} L_ij x^_j,

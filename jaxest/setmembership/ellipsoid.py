@@ -3,7 +3,7 @@
 E(c, P) = {x : (x - c)^T P^{-1} (x - c) <= 1}. The two operations are the paper's time update
 (an outer ellipsoid of the vector sum of an ellipsoid and a segment, eqs 15-17) and measurement
 update (an outer ellipsoid of the intersection of an ellipsoid and a strip, eqs 27-36), with the
-corrections of NOTES.md §2. Both choose the member of a one-parameter family of outer ellipsoids
+corrections of docs/papers/smf.md. Both choose the member of a one-parameter family of outer ellipsoids
 with the least volume. They run under ``jit``/``vmap`` and differentiate (square roots and
 divisions are guarded so that branches not taken give no NaN gradients).
 """

@@ -13,7 +13,7 @@ interval that contains the exact real result of the operation on every point of 
 :func:`eval_jaxpr` interprets a jaxpr over intervals (constants and literals stay exact), which
 gives :func:`hessian_interval`, an enclosure of the Hessian of any ``jax.numpy`` function over a
 box, and :func:`remainder_bound`, the bound of the linearisation remainder over an ellipsoid's
-bounding box (paper eqs 11 and 20, NOTES.md §2).
+bounding box (paper eqs 11 and 20, docs/papers/smf.md).
 """
 
 from __future__ import annotations
@@ -445,7 +445,7 @@ def remainder_bound(
     fn: Callable, center: Float[Array, " n"], shape: Float[Array, "n n"], *args
 ) -> Float[Array, " m"]:
     """Half-widths alpha of a box holding the Lagrange remainder of ``fn`` linearised at
-    ``center``, for every x in E(center, shape) (paper eqs 11, 20; NOTES.md §2):
+    ``center``, for every x in E(center, shape) (paper eqs 11, 20; docs/papers/smf.md):
 
         fn(x) - fn(c) - J(c)(x - c) = 1/2 dx^T H(xi) dx,   |dx_j| <= r_j = sqrt(P_jj),
 

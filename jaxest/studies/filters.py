@@ -1,6 +1,6 @@
 """Core filters study: robustness on the ill-conditioned update, and gradient tuning of Q and R.
 
-1. Every Gaussian filter on the Dyer-McReynolds test (NOTES.md section 1), float64 and float32:
+1. Every Gaussian filter on the Dyer-McReynolds test (docs/papers/svd_ekf.md), float64 and float32:
    relative error of P+ against the closed form for d = 1e-1 ... 1e-16.
 2. Tuning on the 2-D tracking model (:mod:`jaxest.systems.tracking`): starting from Q x 10 and
    R / 10, fit the log-diagonals of Q and R with L-BFGS by maximum likelihood (through the SVD-EKF) and by

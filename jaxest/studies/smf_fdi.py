@@ -1,5 +1,5 @@
 """Study ``smf-fdi``: the ellipsoidal set-membership filter and guaranteed sensor fault detection
-and isolation on the Duffing system (Chai & Sun 2007, §4, figs 1-3, tables 2-3; NOTES.md §2).
+and isolation on the Duffing system (Chai & Sun 2007, §4, figs 1-3, tables 2-3; docs/papers/smf.md).
 
 Protocol: paper steps k = 1..100; sensor 1 carries a bias 0.03 + 0.01 L from k = 50 on, for
 L = 0, 1, 2, plus a fault-free scenario; noise uniform in its box; the same noise draws (one key per

@@ -10,7 +10,7 @@ choices and documents them.
 - Boeing 747, lateral motion at Mach 0.8, 40,000 ft (eq 35), states [beta, r (yaw rate), p (roll
   rate), phi (roll angle)], controls [rudder, aileron], time in seconds. The OCR scan prints
   A[2, 0] = 0.305 (sign and decimal point lost: it makes the airframe unstable) and an aileron
-  column [0, 0.123, 1.063, 0]; the published values (NOTES.md section 5) are A[2, 0] = -3.05 and
+  column [0, 0.123, 1.063, 0]; the published values (docs/papers/adaptive.md) are A[2, 0] = -3.05 and
   [0, 0.0077, 0.143, 0]. The published values are the default; ``printed=True`` gives the scan's.
 """
 

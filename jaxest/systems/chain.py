@@ -4,7 +4,7 @@ Mass i (state x_i = [position, velocity]) is tied to the ground by a spring ``k_
 damper ``damping``, to its neighbours i +- 1 by springs ``k_near`` and to i +- 2 by springs
 ``k_far``. Its coupling vector z_i (h = 4) holds the four spring forces it receives,
 z_i[c] = k_c (p_j - p_i) for j = i-2, i-1, i+1, i+2 (zero where the chain ends), so
-L_ij = k e_c e_p^T for the neighbour j and L_ii = -sum of them (self-coupling, NOTES 4).
+L_ij = k e_c e_p^T for the neighbour j and L_ii = -sum of them (self-coupling, docs/papers/network.md).
 A random force of intensity ``q_force`` drives each mass (plus a small ``q_position`` on the
 position), and each node measures its position (noise intensity ``r_position``) and, with
 ``force_sensors=True``, the four spring forces it receives (``r_force``), as Sanders et al. need

@@ -13,7 +13,7 @@ corrected by the biases: a_x = a_xm + b_x + eta_x, ..., r = r_m + b_r + eta_r. T
 the input noise eta, so the model is a ``NonlinearGaussian(..., noise_on_input=True)`` whose noise
 gain is G = df/du.
 
-Kinematics (eq 26, corrected as in NOTES.md section 1; the printed phi' line repeats terms)::
+Kinematics (eq 26, corrected as in docs/papers/svd_ekf.md; the printed phi' line repeats terms)::
 
     u' = a_x - g sin(theta) + r v - q w
     v' = a_y + g sin(phi) cos(theta) + p w - r u

@@ -16,7 +16,7 @@ filters' one-step-per-sample discretisation) and sampled at the given rate (10 H
 paper).
 
 The sensors (:func:`corrupt`) then apply eq 27 and 28 with the true biases and scale factors and
-white Gaussian noise at HFB-320 levels (NOTES.md section 1).
+white Gaussian noise at HFB-320 levels (docs/papers/svd_ekf.md).
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ DEG = np.pi / 180.0
 #: trim condition: airspeed (m/s), alpha = theta (rad), heading (rad), altitude (m)
 TRIM = {"V": 120.0, "alpha": 3.0 * DEG, "psi": 30.0 * DEG, "h": 3000.0}
 
-#: sensor noise std (HFB-320 levels, NOTES.md section 1): a_x, a_y, a_z (m/s^2), p, q, r (rad/s)
+#: sensor noise std (HFB-320 levels, docs/papers/svd_ekf.md): a_x, a_y, a_z (m/s^2), p, q, r (rad/s)
 INPUT_STD = np.array([0.02, 0.02, 0.05, 0.033 * DEG, 0.033 * DEG, 0.033 * DEG])
 #: V (m/s), beta, alpha, theta, phi (rad), h (m)
 OUTPUT_STD = np.array([0.13, 0.057 * DEG, 0.057 * DEG, 0.025 * DEG, 0.025 * DEG, 0.5])

@@ -4,7 +4,7 @@ x(t+1) = Phi x(t) + Gamma w(t), y(t) = H x(t) + v(t), Q = R = 1, x(0) = 0, N = 3
 
     Phi = [[0.2, 0.1], [0, 1]],  Gamma = [1, 1]^T,  H = [1, 0].
 
-``PAPER`` holds the printed numbers (NOTES.md §3 confirms them; the adjugate term of eq 28 is the
+``PAPER`` holds the printed numbers (docs/papers/wiener.md confirms them; the adjugate term of eq 28 is the
 exception, see ``PRINTED_ADJ_K``).
 """
 
