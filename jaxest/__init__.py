@@ -36,8 +36,11 @@ from jaxest.filters import (
     InformationMatrix as InformationMatrix,
     KalmanFilter as KalmanFilter,
     SquareRootKF as SquareRootKF,
+    SteadyStateGain as SteadyStateGain,
+    SteadyStateKalmanFilter as SteadyStateKalmanFilter,
     StepOutput as StepOutput,
     SVDFactor as SVDFactor,
+    steady_state_gain as steady_state_gain,
 )
 from jaxest.models import (
     AbstractGaussianModel as AbstractGaussianModel,
@@ -50,9 +53,7 @@ from jaxest.montecarlo import monte_carlo as monte_carlo
 from jaxest.riccati import lqr_gain as lqr_gain, solve_care as solve_care, solve_dare as solve_dare
 from jaxest.smoothers import SmootherResult as SmootherResult, rts_smooth as rts_smooth
 from jaxest.smoothers.steady_state import (
-    SteadyStateKalmanFilter as SteadyStateKalmanFilter,
     arma_innovation_model as arma_innovation_model,
-    steady_state_gain as steady_state_gain,
     steady_state_smooth as steady_state_smooth,
 )
 from jaxest.smoothers.wiener import WienerSmoother as WienerSmoother, wiener_smooth as wiener_smooth

@@ -8,12 +8,11 @@ from jax import enable_x64
 
 import jaxest as je
 from jaxest.filters.kalman import KalmanFilter
+from jaxest.filters.steady_state import SteadyStateKalmanFilter, steady_state_gain
 from jaxest.smoothers.steady_state import (
-    SteadyStateKalmanFilter,
     arma_innovation_model,
     characteristic_polynomial,
     fixed_point_smooth,
-    steady_state_gain,
     steady_state_smooth,
 )
 from jaxest.smoothers.wiener import WienerSmoother, lagged_sum, wiener_smooth
@@ -348,7 +347,7 @@ def test_study_quick_writes_the_summary(tmp_path):
 def test_eq13_with_a_repeated_far_eigenvalue():
     """Psi_f with a Jordan block at 0.2 (far) and 0.9 (near): the chosen delta continues
     (1 - 0.2 q^-1)^2 delta(t) = 0, the t lambda^t mode included."""
-    from jaxest.smoothers.steady_state import SteadyStateGain
+    from jaxest.filters.steady_state import SteadyStateGain
 
     with enable_x64(True):
         Phi = jnp.array([[0.2, 1.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.9]])

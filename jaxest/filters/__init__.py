@@ -17,6 +17,11 @@ from jaxest.filters.kalman import (
     KalmanFilter as KalmanFilter,
 )
 from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
+from jaxest.filters.steady_state import (
+    SteadyStateGain as SteadyStateGain,
+    SteadyStateKalmanFilter as SteadyStateKalmanFilter,
+    steady_state_gain as steady_state_gain,
+)
 from jaxest.filters.svd_ekf import (
     SVDEKF as SVDEKF,
     AbstractSVDFilter as AbstractSVDFilter,

@@ -34,14 +34,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxest._priors import Gaussian
+from jaxest.filters.steady_state import SteadyStateGain, steady_state_gain
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.steady_state import (
     ArmaInnovationModel,
-    SteadyStateGain,
     SteadyStateSmootherResult,
     arma_innovation_model,
     backward_gain_sum,
-    steady_state_gain,
     steady_state_smooth,
 )
 

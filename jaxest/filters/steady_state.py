@@ -1,0 +1,140 @@
+"""The steady-state Kalman filter of a time-invariant linear model (Sun & Cui 2003, lemma 1).
+
+For x(t+1) = Phi x(t) + Gamma w(t), y(t) = H x(t) + v(t):
+
+- :func:`steady_state_gain` (lemma 1, eqs 4-5): Sigma, the steady-state one-step prediction
+  covariance, K = Sigma H^T (H Sigma H^T + R)^-1 and Psi_f = (I - K H) Phi;
+- :class:`SteadyStateKalmanFilter` (eq 3): x(t+1|t+1) = Psi_f x(t|t) + K y(t+1), a Gaussian filter
+  like the others, run by ``jaxest.run``.
+
+The steady-state smoothers built on them are in :mod:`jaxest.smoothers.steady_state`
+(docs/papers/wiener.md).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from jaxest._checks import check_gaussian_prior
+from jaxest._priors import Gaussian
+from jaxest._status import finite_status
+from jaxest.filters.base import (
+    AbstractCovarianceFactor,
+    AbstractGaussianFilter,
+    GaussianState,
+    StepOutput,
+)
+from jaxest.filters.common import gaussian_loglik
+from jaxest.linalg import symmetrize
+from jaxest.models import LinearGaussian
+from jaxest.riccati import solve_dare
+
+
+class SteadyStateGain(eqx.Module):
+    """Lemma 1: the steady state of the Kalman filter of a time-invariant linear model."""
+
+    Phi: Float[Array, "n n"]
+    H: Float[Array, "m n"]
+    Sigma: Float[Array, "n n"]  #: steady-state prediction covariance P(t|t-1), eq 5
+    K: Float[Array, "n m"]  #: filter gain, eq 4
+    innovation_cov: Float[Array, "m m"]  #: Q_eps = H Sigma H^T + R
+
+    @property
+    def Psi_f(self) -> Float[Array, "n n"]:
+        """Psi_f = (I - K H) Phi, the (stable) filter transition matrix of eq 3."""
+        return (jnp.eye(self.Phi.shape[0], dtype=self.Phi.dtype) - self.K @ self.H) @ self.Phi
+
+    @property
+    def smoother_transition(self) -> Float[Array, "n n"]:
+        """(I - K H)^T Phi^T, whose powers make the fixed-point gains of eq 9."""
+        eye = jnp.eye(self.Phi.shape[0], dtype=self.Phi.dtype)
+        return (eye - self.K @ self.H).T @ self.Phi.T
+
+    @property
+    def innovation_gain(self) -> Float[Array, "n m"]:
+        """H^T Q_eps^-1, the last factor of eq 9."""
+        return jnp.linalg.solve(self.innovation_cov, self.H).T
+
+    @property
+    def filtered_cov(self) -> Float[Array, "n n"]:
+        """P(t|t) = Sigma - K Q_eps K^T."""
+        return symmetrize(self.Sigma - self.K @ self.innovation_cov @ self.K.T)
+
+
+def check_time_invariant(model) -> None:
+    """The steady-state theory needs a time-invariant :class:`~jaxest.LinearGaussian` model
+    without inputs; raise ``ValueError`` naming the offending part otherwise."""
+    if not isinstance(model, LinearGaussian):
+        raise ValueError(f"model: expected jaxest.LinearGaussian, got {type(model).__name__}")
+    for name in ("B", "D"):
+        if getattr(model, name) is not None:
+            raise ValueError(f"model.{name}: the steady-state smoothers take no inputs")
+    for name in ("F", "H", "Q", "R", "G"):
+        value = getattr(model, name)
+        if value is not None and jnp.ndim(value) != 2:
+            raise ValueError(
+                f"model.{name}: must be time-invariant (a matrix), got shape {jnp.shape(value)}"
+            )
+
+
+def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
+    """Sigma from the filter Riccati equation (eq 5), solved as the control-form DARE
+    ``solve_dare(Phi^T, H^T, Gamma Q Gamma^T, R)``, then K (eq 4) and Q_eps."""
+    check_time_invariant(model)
+    Phi, H, R = model.F, model.H, model.R
+    G, _ = model.process_noise(None, None, 0)
+    Sigma = solve_dare(Phi.T, H.T, symmetrize(G @ model.Q @ G.T), R)
+    Qe = symmetrize(H @ Sigma @ H.T + R)
+    K = jnp.linalg.solve(Qe, H @ Sigma).T
+    return SteadyStateGain(Phi, H, Sigma, K, Qe)
+
+
+class SteadyStateFactor(AbstractCovarianceFactor):
+    """The steady-state filter's "factor" of P(t|t-1): the constant gain and the Cholesky factor
+    of the innovation covariance, computed once in ``init``; ``cov`` is Sigma."""
+
+    gain: SteadyStateGain
+    innovation_chol: Float[Array, "m m"]
+
+    @property
+    def cov(self):
+        return self.gain.Sigma
+
+
+class SteadyStateKalmanFilter(AbstractGaussianFilter):
+    """Lemma 1 / eq 3: the Kalman filter with its steady-state gain, x(t|t) = x(t|t-1) +
+    K (y(t) - H x(t|t-1)), x(t+1|t) = Phi x(t|t), i.e. x(t+1|t+1) = Psi_f x(t|t) + K y(t+1).
+
+    Only the prior's mean is used (x(0|-1)): the steady state presumes the filter started at
+    t0 -> -infinity, so the reported covariances are the constant Sigma and P(t|t). No missing
+    (NaN) measurements. ``gain`` is :func:`steady_state_gain` of the model (computed in ``init``
+    when not given).
+    """
+
+    gain: SteadyStateGain | None = None
+    factor_type = SteadyStateFactor
+
+    def init(self, model, prior: Gaussian) -> GaussianState:
+        check_gaussian_prior(prior)
+        gain = steady_state_gain(model) if self.gain is None else self.gain
+        factor = SteadyStateFactor(gain, jnp.linalg.cholesky(gain.innovation_cov))
+        return GaussianState(prior.mean, factor, jnp.zeros((), jnp.result_type(prior.mean)))
+
+    def check(self, model, ys, inputs, prior) -> None:
+        check_time_invariant(model)
+        super().check(model, ys, inputs, prior)
+
+    def update_predict(self, model, x, factor: SteadyStateFactor, k, y, u):
+        g = factor.gain
+        e = y - g.H @ x
+        x_post = x + g.K @ e
+        S_chol = factor.innovation_chol
+        z = jax.scipy.linalg.solve_triangular(S_chol, e, lower=True)
+        loglik = gaussian_loglik(z, S_chol, e.shape[0])
+        x_next = g.Phi @ x_post
+        status = finite_status(x_next, loglik)
+        out = StepOutput(x, g.Sigma, x_post, g.filtered_cov, e, g.innovation_cov, loglik, status)
+        return x_next, factor, out
