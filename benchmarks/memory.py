@@ -16,24 +16,14 @@ import resource
 import time
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
+from speed import linear_model  # noqa: E402 - the speed benchmark's 4x2 model
+
 import jaxest as je  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
-
-
-def model_and_prior():
-    rng = np.random.default_rng(0)
-    F = 0.95 * np.linalg.qr(rng.normal(size=(4, 4)))[0]
-    H = rng.normal(size=(2, 4))
-    A = rng.normal(size=(4, 4))
-    Q = A @ A.T / 4 + 0.1 * np.eye(4)
-    R = np.array([[0.5, 0.1], [0.1, 0.3]])
-    model = je.LinearGaussian(*(jnp.asarray(a) for a in (F, H, Q, R)))
-    return model, je.Gaussian(jnp.zeros(4), jnp.eye(4))
 
 
 def peak_rss_mib() -> float:
@@ -47,7 +37,7 @@ def main(argv=None):
     parser.add_argument("--steps", type=int, default=10_000)
     parser.add_argument("--chunk", type=int, default=500)
     args = parser.parse_args(argv)
-    model, prior = model_and_prior()
+    model, prior = linear_model()
     save = je.SaveAt(fields=())
 
     def one_run(key):

@@ -29,7 +29,8 @@ from jaxest.systems.duffing import Duffing  # noqa: E402
 T, RUNS = 1000, 200
 
 
-def linear_problem():
+def linear_model():
+    """The random stable 4-state / 2-measurement model (seed 0) and its prior."""
     rng = np.random.default_rng(0)
     F = 0.95 * np.linalg.qr(rng.normal(size=(4, 4)))[0]
     H = rng.normal(size=(2, 4))
@@ -37,7 +38,11 @@ def linear_problem():
     Q = A @ A.T / 4 + 0.1 * np.eye(4)
     R = np.array([[0.5, 0.1], [0.1, 0.3]])
     model = je.LinearGaussian(*(jnp.asarray(a) for a in (F, H, Q, R)))
-    prior = je.Gaussian(jnp.zeros(4), jnp.eye(4))
+    return model, je.Gaussian(jnp.zeros(4), jnp.eye(4))
+
+
+def linear_problem():
+    model, prior = linear_model()
 
     def jaxest_loglik(q_scale, ys):
         mdl = je.LinearGaussian(model.F, model.H, q_scale * model.Q, model.R)
