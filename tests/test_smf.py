@@ -182,3 +182,17 @@ def test_study_quick_writes_summary(tmp_path):
         "tables.md",
     ):
         assert (tmp_path / "smf-fdi" / name).exists()
+
+
+def test_bounds_given_as_python_numbers_or_lists():
+    """Lists are arrays; a scalar bound is named, not an AttributeError."""
+    model = duffing.model(False, jnp.float64)
+    as_list = BoundedNoiseModel(model.f, model.h, [0.005, 0.005], [0.01, 0.01])
+    prior = duffing.prior(jnp.float64)
+    ys = jnp.full((5, 2), 0.25)
+    reference = set_membership_filter(model, ys, prior=prior)
+    listed = set_membership_filter(as_list, ys, prior=prior)
+    np.testing.assert_allclose(listed.shape, reference.shape, rtol=1e-12)
+    scalar = BoundedNoiseModel(model.f, model.h, 0.005, [0.01, 0.01])
+    with pytest.raises(ValueError, match="model.process_bound"):
+        set_membership_filter(scalar, ys, prior=prior)

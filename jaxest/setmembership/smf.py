@@ -61,8 +61,8 @@ class BoundedNoiseModel(eqx.Module):
 
     f: Callable
     h: Callable
-    process_bound: Float[Array, " n"]
-    measurement_bound: Float[Array, " m"]
+    process_bound: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
+    measurement_bound: Float[Array, " m"] = eqx.field(converter=jnp.asarray)
     f_remainder: Callable | None = None
     h_remainder: Callable | None = None
 
@@ -254,6 +254,15 @@ def check_smf_arguments(model, ys, prior, inputs):
         raise ValueError(f"model: expected a BoundedNoiseModel, got {type(model).__name__}")
     if not isinstance(prior, Ellipsoid):
         raise ValueError(f"prior: expected an Ellipsoid(center, shape), got {type(prior).__name__}")
+    for name in ("process_bound", "measurement_bound"):
+        value = getattr(model, name)
+        if np.ndim(value) != 1:
+            raise ValueError(
+                f"model.{name}: expected a vector of half-widths (one per state or measurement),"
+                f" got shape {np.shape(value)}"
+            )
+        if is_concrete(value) and not np.all(np.asarray(value) >= 0):
+            raise ValueError(f"model.{name}: half-widths must be non-negative")
     n, m = model.state_dim, model.obs_dim
     check_sequence("ys", ys, dim=m)
     if inputs is not None:
@@ -261,11 +270,3 @@ def check_smf_arguments(model, ys, prior, inputs):
     if np.shape(prior.center) != (n,):
         raise ValueError(f"prior.center: expected shape ({n},), got {np.shape(prior.center)}")
     check_matrix("prior.shape", prior.shape, (n, n), spd=True)
-    for name in ("process_bound", "measurement_bound"):
-        value = getattr(model, name)
-        if np.ndim(value) != 1:
-            raise ValueError(
-                f"model.{name}: expected a vector of half-widths, got shape {np.shape(value)}"
-            )
-        if is_concrete(value) and not np.all(np.asarray(value) >= 0):
-            raise ValueError(f"model.{name}: half-widths must be non-negative")
