@@ -209,5 +209,6 @@ def test_rts_smooth_compiles_once():
     traces.clear()
     je.rts_smooth(Counting(jnp.asarray(0.9)), res)
     first = len(traces)
-    je.rts_smooth(Counting(jnp.asarray(0.8)), res)
+    smooth = je.rts_smooth(Counting(jnp.asarray(0.8)), res)
+    assert bool(smooth.ok)
     assert first > 0 and len(traces) == first  # the second call reused the compiled smoother

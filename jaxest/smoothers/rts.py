@@ -27,6 +27,11 @@ class SmootherResult(eqx.Module):
     cov: Float[Array, "T n n"]
     status: Int[Array, " T"]
 
+    @property
+    def ok(self) -> jax.Array:
+        """True where every step of the filter and of the smoother finished with status OK."""
+        return jnp.all(self.status == 0, axis=-1)
+
 
 NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
 
