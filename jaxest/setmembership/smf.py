@@ -39,9 +39,10 @@ from jaxest.run import Status, check_finite_status, run
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
+    condition_number,
     contains,
     intersect_strip,
-    is_positive_definite,
+    max_condition,
 )
 from jaxest.setmembership.interval import remainder_bound
 
@@ -80,6 +81,14 @@ class BoundedNoiseModel(eqx.Module):
         else:
             bound = remainder_bound(g, center, shape)
         return value, jac, bound
+
+
+class SMFStatus:
+    """Status bits of the set-membership filter beside :class:`jaxest.run.Status`."""
+
+    #: the filtered or predicted shape matrix is not positive definite or its condition number
+    #: passed :func:`~jaxest.setmembership.ellipsoid.max_condition`: the set is declared unbounded
+    ILL_CONDITIONED = 32
 
 
 class SMFState(eqx.Module):
@@ -129,8 +138,15 @@ class SMFResult(eqx.Module):
 
 
 class SetMembershipFilter(eqx.Module):
-    """The nonlinear ellipsoidal SMF (module docstring). ``max_radius``: the set counts as
-    unbounded once some sqrt(P_ii) exceeds it (default: 1 / sqrt(eps) of the dtype)."""
+    """The nonlinear ellipsoidal SMF (module docstring).
+
+    A set is trusted while its shape matrix is finite, positive definite, has condition number
+    at most :func:`~jaxest.setmembership.ellipsoid.max_condition` (kappa n eps <= 2^-10) and every
+    sqrt(P_ii) is at most ``max_radius``. The default radius limit is b sqrt(kappa_max), b the
+    least positive noise half-width: once measured, the set's smallest semi-axis is of the order
+    of the strip and box half-widths, so a longer axis than that means a condition number the
+    arithmetic cannot carry (and a set far larger than the noise that shaped it).
+    """
 
     max_radius: float | None = None
 
@@ -138,10 +154,25 @@ class SetMembershipFilter(eqx.Module):
         center, shape = jnp.asarray(prior.center), jnp.asarray(prior.shape)
         return SMFState(center, shape, jnp.zeros((), bool))
 
-    def _limit(self, dtype):
+    def _limit(self, model, dtype):
+        """max_radius^2 (the default from the noise half-widths, class docstring)."""
         if self.max_radius is not None:
-            return self.max_radius**2
-        return 1.0 / jnp.finfo(dtype).eps
+            return jnp.asarray(self.max_radius**2, dtype)
+        bounds = jnp.concatenate([model.process_bound, model.measurement_bound]).astype(dtype)
+        smallest = jnp.min(jnp.where(bounds > 0, bounds, jnp.inf))
+        n = model.state_dim
+        return jnp.where(jnp.isfinite(smallest), smallest**2, 1.0) * max_condition(dtype, n)
+
+    def _trusted(self, model, center, shape):
+        """``(trusted, conditioned)``: the set passes every check / the conditioning one."""
+        conditioned = condition_number(shape) <= max_condition(shape.dtype, shape.shape[-1])
+        trusted = (
+            conditioned
+            & jnp.all(jnp.isfinite(shape))
+            & jnp.all(jnp.isfinite(center))
+            & jnp.all(jnp.diagonal(shape) <= self._limit(model, shape.dtype))
+        )
+        return trusted, conditioned
 
     def measurement_update(self, model, center, shape, y, u):
         """Eqs 18-36; returns ``(center, shape, empty, remainder)``."""
@@ -177,30 +208,28 @@ class SetMembershipFilter(eqx.Module):
     def step(self, model, state: SMFState, y, u):
         c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u)
         empty = empty & ~state.unbounded
+        trusted, conditioned = self._trusted(model, c, P)
+        unbounded = state.unbounded | ~trusted  # flagged at the step the filtered set goes bad
         c_next, P_next, alpha_f = self.time_update(model, c, P, u)
-        diag = jnp.diagonal(P_next)
-        healthy = (
-            jnp.all(jnp.isfinite(P_next))
-            & jnp.all(jnp.isfinite(c_next))
-            & jnp.all(diag <= self._limit(P.dtype))
-            & is_positive_definite(P_next)
-        )
-        unbounded_next = state.unbounded | ~healthy
+        trusted_next, conditioned_next = self._trusted(model, c_next, P_next)
+        unbounded_next = unbounded | ~trusted_next
         frozen = lambda new, old: jnp.where(unbounded_next, old, new)
         new_state = SMFState(
             frozen(c_next, state.center), frozen(P_next, state.shape), unbounded_next
         )
         n = P.shape[-1]
         everything = jnp.where(jnp.eye(n, dtype=bool), jnp.inf, 0.0).astype(P.dtype)
+        ill = ~state.unbounded & ~(conditioned & conditioned_next)
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)
-            | jnp.where(state.unbounded, Status.UNBOUNDED, 0)
+            | jnp.where(unbounded, Status.UNBOUNDED, 0)
+            | jnp.where(ill, SMFStatus.ILL_CONDITIONED, 0)
             | check_finite_status(c)
         ).astype(jnp.int32)
         output = SMFOutput(
             center=c,
-            shape=jnp.where(state.unbounded, everything, P),
-            remainder=jnp.where(state.unbounded, jnp.inf, alpha_f),
+            shape=jnp.where(unbounded, everything, P),
+            remainder=jnp.where(unbounded, jnp.inf, alpha_f),
             measurement_remainder=jnp.where(state.unbounded, jnp.inf, alpha_h),
             status=status,
         )
