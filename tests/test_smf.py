@@ -181,3 +181,18 @@ def test_study_quick_writes_summary(tmp_path):
         "tables.md",
     ):
         assert (tmp_path / "smf-fdi" / name).exists()
+
+
+def test_ill_conditioned_set_is_flagged_at_its_step():
+    """A prior of condition 1e15 (beyond kappa n eps <= 2^-10): flagged ILL_CONDITIONED and
+    UNBOUNDED at step 0, never reported as an empty set or a bounded set."""
+    from jaxest.setmembership.smf import SMFStatus
+
+    model = BoundedNoiseModel(
+        lambda x, u: x, lambda x, u: x[1:], jnp.full(2, 0.01), jnp.full(1, 0.01)
+    )
+    prior = Ellipsoid(jnp.zeros(2), jnp.diag(jnp.array([1.0, 1e-15])))
+    result = set_membership_filter(model, jnp.zeros((3, 1)), prior)
+    status = np.asarray(result.status)
+    assert status[0] & SMFStatus.ILL_CONDITIONED and status[0] & Status.UNBOUNDED
+    assert np.all(np.asarray(result.unbounded)) and not np.any(np.asarray(result.inconsistent))

@@ -13,6 +13,7 @@ from jaxest.setmembership.smf import (
     BoundedNoiseModel,
     SetMembershipFilter,
     SMFResult,
+    SMFStatus,
     set_membership_filter,
 )
 
@@ -21,6 +22,7 @@ __all__ = [
     "Ellipsoid",
     "Interval",
     "SMFResult",
+    "SMFStatus",
     "SetMembershipFilter",
     "add_box",
     "add_segment",
