@@ -16,11 +16,13 @@ What happens in the two failure modes (both reported in ``status``):
   the predicted set, so the model (the noise bounds, or a healthy sensor) is wrong: a guaranteed
   fault alarm (§3). The filter then discards that step's measurements and carries the predicted
   ellipsoid forward, which still contains the state when the fault is in the sensors.
-- **Unbounded set** (``Status.UNBOUNDED``): the set's size passed ``max_radius`` or lost positive
-  definiteness or finiteness (e.g. a filter that never sees x_1 of the Duffing system: its
-  remainder bound grows like P_11^{3/2}). The set then contains everything: the filter stops
-  updating, never signals an empty set again, and reports a shape of +inf on the diagonal; the
-  flag stays set for the rest of the run.
+- **Unbounded set** (``Status.UNBOUNDED``): the filtered or predicted set's size passed
+  ``max_radius``, or it lost finiteness, positive definiteness or a condition number the
+  arithmetic can carry (``SMFStatus.ILL_CONDITIONED`` beside it), e.g. a filter that never sees
+  x_1 of the Duffing system: its remainder bound grows like P_11^{3/2}. The set then contains
+  everything: the filter stops updating, never signals an empty set again, and reports a shape of
+  +inf on the diagonal, from the step whose filtered set went bad (one step later when only the
+  prediction did); the flag stays set for the rest of the run.
 
 A NaN entry of y_k means "no measurement from that sensor at step k" (its strip is skipped);
 the fault-isolation banks of :mod:`jaxest.setmembership.fdi` feed sensor subsets this way.
