@@ -174,6 +174,9 @@ def test_study_quick_writes_summary(tmp_path):
             assert entry["false_alarm_rate"] == 0.0
     assert 0.0 <= written["ekf_chi2"]["false_alarm_rate"] <= 1.0 and "wall_seconds" in written
     assert summary["automatic_bound_check"]["same_detection_flags"]
+    for entry in written["containment_stress"].values():
+        assert entry["containment_rate"] == 1.0 and entry["steps_outside"] == 0
+        assert entry["unflagged_not_positive_definite"] == 0
     for name in (
         "fig1_smf_bounds.png",
         "fig2_ekf_bounds.png",
