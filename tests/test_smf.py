@@ -199,3 +199,13 @@ def test_ill_conditioned_set_is_flagged_at_its_step():
     status = np.asarray(result.status)
     assert status[0] & SMFStatus.ILL_CONDITIONED and status[0] & Status.UNBOUNDED
     assert np.all(np.asarray(result.unbounded)) and not np.any(np.asarray(result.inconsistent))
+
+
+def test_python_lists_as_bounds_and_scalar_bound_named():
+    model = BoundedNoiseModel(lambda x, u: x, lambda x, u: x, [0.01, 0.01], [0.02, 0.02])
+    prior = Ellipsoid(jnp.zeros(2), 0.01 * jnp.eye(2))
+    result = set_membership_filter(model, jnp.zeros((3, 2)), prior)
+    assert np.all(np.asarray(result.contains(jnp.zeros((3, 2)))))
+    scalar = BoundedNoiseModel(lambda x, u: x, lambda x, u: x, 0.01, [0.02, 0.02])
+    with pytest.raises(ValueError, match="model.process_bound"):
+        set_membership_filter(scalar, jnp.zeros((3, 2)), prior)

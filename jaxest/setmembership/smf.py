@@ -53,7 +53,8 @@ class BoundedNoiseModel(eqx.Module):
     """x_{k+1} = f(x_k, u_k) + w_k,  y_k = h(x_k, u_k) + v_k,  |w| <= process_bound,
     |v| <= measurement_bound (element-wise half-widths of the boxes W and V, eqs 3-4).
 
-    ``f(x, u)`` and ``h(x, u)`` are written in ``jax.numpy`` (``u`` is ``None`` without inputs).
+    The bounds may be given as Python lists (converted to arrays). ``f(x, u)`` and ``h(x, u)``
+    are written in ``jax.numpy`` (``u`` is ``None`` without inputs).
     The remainder bounds default to the automatic interval bound of
     :func:`~jaxest.setmembership.interval.remainder_bound`; ``f_remainder(center, shape, u)`` /
     ``h_remainder(center, shape, u)`` may replace it by a closed form (it must be guaranteed).
@@ -61,8 +62,8 @@ class BoundedNoiseModel(eqx.Module):
 
     f: Callable
     h: Callable
-    process_bound: Float[Array, " n"]
-    measurement_bound: Float[Array, " m"]
+    process_bound: Float[Array, " n"] = eqx.field(converter=jnp.asarray)
+    measurement_bound: Float[Array, " m"] = eqx.field(converter=jnp.asarray)
     f_remainder: Callable | None = None
     h_remainder: Callable | None = None
 
@@ -270,13 +271,6 @@ def check_smf_arguments(model, ys, prior, inputs):
         raise ValueError(f"model: expected a BoundedNoiseModel, got {type(model).__name__}")
     if not isinstance(prior, Ellipsoid):
         raise ValueError(f"prior: expected an Ellipsoid(center, shape), got {type(prior).__name__}")
-    n, m = model.state_dim, model.obs_dim
-    check_sequence("ys", ys, dim=m)
-    if inputs is not None:
-        check_sequence("inputs", inputs, length=np.shape(ys)[0])
-    if np.shape(prior.center) != (n,):
-        raise ValueError(f"prior.center: expected shape ({n},), got {np.shape(prior.center)}")
-    check_matrix("prior.shape", prior.shape, (n, n), spd=True)
     for name in ("process_bound", "measurement_bound"):
         value = getattr(model, name)
         if np.ndim(value) != 1:
@@ -285,3 +279,10 @@ def check_smf_arguments(model, ys, prior, inputs):
             )
         if is_concrete(value) and not np.all(np.asarray(value) >= 0):
             raise ValueError(f"model.{name}: half-widths must be non-negative")
+    n, m = model.state_dim, model.obs_dim
+    check_sequence("ys", ys, dim=m)
+    if inputs is not None:
+        check_sequence("inputs", inputs, length=np.shape(ys)[0])
+    if np.shape(prior.center) != (n,):
+        raise ValueError(f"prior.center: expected shape ({n},), got {np.shape(prior.center)}")
+    check_matrix("prior.shape", prior.shape, (n, n), spd=True)
