@@ -133,3 +133,67 @@ def test_operations_under_jit_vmap_grad(dtype):
     )
     assert np.isfinite(g2) and g2 == 0
     assert bool(contains(cs[0], P, cs[0])) and not bool(contains(cs[0], P, cs[0] + 10))
+
+
+def _exact_strip(c, P, h, z, v):
+    """Eqs 27-36 in the direct form, in 60-digit decimal arithmetic (cancellation is harmless)."""
+    from decimal import Decimal as D, localcontext
+
+    with localcontext() as ctx:
+        ctx.prec = 60
+        n = len(c)
+        c = [D(float(x)) for x in c]
+        P = [[D(float(x)) for x in row] for row in P]
+        h, z, v = [D(float(x)) for x in h], D(float(z)), D(float(v))
+        Ph = [sum(P[i][j] * h[j] for j in range(n)) for i in range(n)]
+        g = sum(h[i] * Ph[i] for i in range(n))
+        offset = z - sum(h[i] * c[i] for i in range(n))
+        pp, pm = min((offset + v) / g.sqrt(), D(1)), max((offset - v) / g.sqrt(), D(-1))
+        e, d = (pp + pm) / 2, (pp - pm) / 2
+        A, B = D(n - 1), (2 * n - 1) * d * d - 1 + e * e
+        C = d * d * (n * (d * d - e * e) - 1)
+        q = (-B + (B * B - 4 * A * C).sqrt()) / (2 * A)
+        s = d * d + q
+        beta = 1 + q - q * e * e / s
+        shape = [
+            [beta * (P[i][j] - q / (s * g) * Ph[i] * Ph[j]) for j in range(n)] for i in range(n)
+        ]
+        return np.array([[float(x) for x in row] for row in shape])
+
+
+def test_strip_on_an_elongated_set_matches_exact_arithmetic():
+    """The issue's reproduction: sqrt(P22) = 1e7, strip half-width 0.05 (direct form: P22 = 0)."""
+    P = np.diag([2e5, 1e14])
+    c, shape, _ = intersect_strip(
+        jnp.zeros(2), jnp.asarray(P), jnp.array([0.0, 1.0]), jnp.asarray(0.01), jnp.asarray(0.05)
+    )
+    exact = _exact_strip([0, 0], P, [0, 1], 0.01, 0.05)
+    assert abs(float(shape[1, 1]) / exact[1, 1] - 1) < 1e-6
+    assert bool(contains(c, shape, jnp.array([0.0, 0.04])))
+
+
+@pytest.mark.parametrize("n", [2, 3])
+def test_strip_matches_exact_arithmetic_up_to_condition_1e12(n):
+    """Random shapes of condition up to 1e12 and strips down to 1e-7 of the set's extent."""
+    rng = np.random.default_rng(n)
+    for _ in range(40):
+        Q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        P = Q @ np.diag(10.0 ** rng.uniform(-6, 6, n)) @ Q.T
+        P = 0.5 * (P + P.T)
+        h = rng.normal(size=n)
+        g = h @ P @ h
+        v = np.sqrt(g) * 10.0 ** rng.uniform(-7, -0.5)
+        z = rng.uniform(-0.5, 0.5) * np.sqrt(g)
+        c, shape, empty = intersect_strip(
+            jnp.zeros(n), jnp.asarray(P), jnp.asarray(h), jnp.asarray(z), jnp.asarray(v)
+        )
+        exact = _exact_strip(np.zeros(n), P, h, z, v)
+        # error in the exact shape's own metric (every direction, the shrunk one included); a
+        # dense float matrix of condition kappa carries that metric only to about kappa eps (the
+        # rounding of the input P alone moves the answer that much), so that is the bound
+        Li = np.linalg.inv(np.linalg.cholesky(exact))
+        err = np.linalg.norm(Li @ (np.asarray(shape) - exact) @ Li.T, 2)
+        kappa = max(np.linalg.cond(exact), np.linalg.cond(P))
+        bound = 64 * n * np.finfo(float).eps * kappa
+        assert not bool(empty) and err < max(bound, 1e-9), (err, bound)
+        assert np.linalg.eigvalsh(np.asarray(shape))[0] > 0

@@ -196,3 +196,16 @@ def test_unsupported_primitive_is_named():
     fn = lambda x: jax.lax.fori_loop(0, 2, lambda i, v: v * x, x)
     with pytest.raises(NotImplementedError, match="scan"):
         hessian_interval(fn, Interval(jnp.zeros(2), jnp.ones(2)))
+
+
+def test_reduce_sum_widens_relative_to_the_magnitude_of_the_terms():
+    # the float sum of [1e16, 1, -1e16] is 0; the exact sum 1 must lie in the result
+    x = Interval(jnp.array([1e16, 1.0, -1e16]), jnp.array([1e16, 1.0, -1e16]))
+    total = iv.reduce_sum(x, (0,))
+    assert float(total.lo) <= 1.0 <= float(total.hi)
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        v = rng.normal(size=8) * 10.0 ** rng.integers(-8, 17, 8)
+        exact = sum(Fraction(float(t)) for t in v)
+        s = iv.reduce_sum(Interval(jnp.asarray(v), jnp.asarray(v)), (0,))
+        assert Fraction(float(s.lo)) <= exact <= Fraction(float(s.hi))

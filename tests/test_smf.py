@@ -175,6 +175,9 @@ def test_study_quick_writes_summary(tmp_path):
             assert entry["false_alarm_rate"] == 0.0
     assert 0.0 <= written["ekf_chi2"]["false_alarm_rate"] <= 1.0 and "wall_seconds" in written
     assert summary["automatic_bound_check"]["same_detection_flags"]
+    for entry in written["containment_stress"].values():
+        assert entry["containment_rate"] == 1.0 and entry["steps_outside"] == 0
+        assert entry["unflagged_not_positive_definite"] == 0
     for name in (
         "fig1_smf_bounds.png",
         "fig2_ekf_bounds.png",
@@ -196,3 +199,16 @@ def test_bounds_given_as_python_numbers_or_lists():
     scalar = BoundedNoiseModel(model.f, model.h, 0.005, [0.01, 0.01])
     with pytest.raises(ValueError, match="model.process_bound"):
         set_membership_filter(scalar, ys, prior=prior)
+
+
+def test_ill_conditioned_set_is_flagged_at_its_step():
+    """A prior of condition 1e15 (beyond kappa n eps <= 2^-10): flagged ILL_CONDITIONED and
+    UNBOUNDED at step 0, never reported as an empty set or a bounded set."""
+    model = BoundedNoiseModel(
+        lambda x, u: x, lambda x, u: x[1:], jnp.full(2, 0.01), jnp.full(1, 0.01)
+    )
+    prior = Ellipsoid(jnp.zeros(2), jnp.diag(jnp.array([1.0, 1e-15])))
+    result = set_membership_filter(model, jnp.zeros((3, 1)), prior=prior)
+    status = np.asarray(result.status)
+    assert status[0] & Status.ILL_CONDITIONED and status[0] & Status.UNBOUNDED
+    assert np.all(np.asarray(result.unbounded)) and not np.any(np.asarray(result.inconsistent))

@@ -15,12 +15,14 @@ from jaxest.setmembership.smf import (
     SMFResult,
     set_membership_filter,
 )
+from jaxest.setmembership.status import SetStatus
 
 __all__ = [
     "BoundedNoiseModel",
     "Ellipsoid",
     "Interval",
     "SMFResult",
+    "SetStatus",
     "SetMembershipFilter",
     "add_box",
     "add_segment",

@@ -104,14 +104,31 @@ def intersect_strip(
         q = jnp.where(B >= 0, -2 * C / _safe(update, B + root_disc), (root_disc - B) / (2 * A))
         s = _safe(update, d**2 + q)  # s / g
         new_center = center + (q * e / s / root_g) * Ph
-        new_shape = (1 + q - q * e**2 / s) * (
-            shape - (q / (s * _safe(positive, g))) * jnp.outer(Ph, Ph)
+        new_shape = (1 + q - q * e**2 / s) * _joseph(
+            shape, normal, Ph, g, d**2 / _safe(update, q, 1.0)
         )
     return (
         jnp.where(update, new_center, center),
         jnp.where(update, symmetrize(new_shape), shape),
         empty,
     )
+
+
+def _joseph(shape, normal, Ph, g, r_over_g):
+    """P - (q/s) P h h^T P (eq 33) in the Joseph-like form (I - k h^T) P (I - k h^T)^T + r k k^T.
+
+    By Sherman-Morrison, P - (q/s) P h h^T P = (P^{-1} + h h^T / r)^{-1} with r = d^2/q
+    (d, q unnormalised; r = g d^2/q in the normalised variables used here), i.e. a Kalman update
+    with measurement variance r and gain k = P h / (g + r). The direct form loses the shrunk axis
+    to cancellation (relative error about eps g / r); here the shrunk axis comes from the
+    non-negative term r k k^T and the rounding of (I - k h^T) enters only squared
+    (docs/papers/smf.md, strip intersection).
+    """
+    n = shape.shape[-1]
+    r = g * r_over_g
+    gain = Ph / _safe(g + r > 0, g + r)
+    reduce = jnp.eye(n, dtype=shape.dtype) - jnp.outer(gain, normal)
+    return reduce @ shape @ reduce.T + r * jnp.outer(gain, gain)
 
 
 def contains(
@@ -144,3 +161,25 @@ def is_positive_definite(matrix: Float[Array, "n n"]) -> Bool[Array, ""]:
     if n == 2:
         return (matrix[0, 0] > 0) & (matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0] > 0)
     return jnp.all(jnp.isfinite(jnp.linalg.cholesky(matrix)))
+
+
+def condition_number(matrix: Float[Array, "n n"]) -> Float[Array, ""]:
+    """lambda_max / lambda_min of the symmetric ``matrix`` (+inf unless positive definite);
+    closed form for n <= 2 (lambda_min = det / lambda_max, free of cancellation)."""
+    n = matrix.shape[-1]
+    if n == 1:
+        return jnp.where(matrix[0, 0] > 0, 1.0, jnp.inf).astype(matrix.dtype)
+    if n == 2:
+        a, b, d = matrix[0, 0], matrix[0, 1], matrix[1, 1]
+        largest = 0.5 * (a + d) + jnp.sqrt(0.25 * (a - d) ** 2 + b**2)
+        det = a * d - b * b
+        ok = is_positive_definite(matrix) & (largest > 0)
+        return jnp.where(ok, largest**2 / _safe(ok, det), jnp.inf)
+    eig = jnp.linalg.eigvalsh(matrix)
+    return jnp.where(eig[0] > 0, eig[-1] / _safe(eig[0] > 0, eig[0]), jnp.inf)
+
+
+def max_condition(dtype, n: int) -> float:
+    """Largest condition number of a shape matrix the filter trusts: kappa n eps <= 2^-10 keeps
+    the relative error of a solve with it (the containment test, eq 16's a) below 1e-3."""
+    return 2.0**-10 / (n * float(jnp.finfo(dtype).eps))

@@ -237,9 +237,18 @@ def min_(a, b) -> Interval:
     return Interval(jnp.minimum(a.lo, b.lo), jnp.minimum(a.hi, b.hi))
 
 
+def _widen_sum(lo, hi, magnitude, terms) -> Interval:
+    """Endpoints of a floating-point sum of ``terms`` terms moved outward by the bound
+    terms * eps * sum|x_i| of its rounding error (relative to sum|x_i|, not |sum x_i|: a
+    cancelling sum has an error far larger than eps |sum|), then one ulp."""
+    slack = terms * _eps(lo) * magnitude
+    return Interval(_down(lo - slack), _up(hi + slack))
+
+
 def reduce_sum(x: Interval, axes) -> Interval:
     terms = math.prod(x.shape[a] for a in axes)
-    return _widen(jnp.sum(x.lo, axis=axes), jnp.sum(x.hi, axis=axes), terms)
+    magnitude = jnp.sum(jnp.maximum(jnp.abs(x.lo), jnp.abs(x.hi)), axis=axes)
+    return _widen_sum(jnp.sum(x.lo, axis=axes), jnp.sum(x.hi, axis=axes), magnitude, terms)
 
 
 def dot_general(a, b, **params) -> Interval:
@@ -391,8 +400,12 @@ def _apply(eqn, invals):
         if isinstance(indices, Interval):
             raise NotImplementedError("interval evaluation: scatter-add with an interval index")
         bind = lambda a, b: eqn.primitive.bind(a, indices, b, **params)
-        return _widen(
-            bind(operand.lo, updates.lo), bind(operand.hi, updates.hi), updates.lo.size + 1
+        magnitude = lambda x: jnp.maximum(jnp.abs(x.lo), jnp.abs(x.hi))
+        return _widen_sum(
+            bind(operand.lo, updates.lo),
+            bind(operand.hi, updates.hi),
+            bind(magnitude(operand), magnitude(updates)),
+            updates.lo.size + 1,
         )
     if name == "split":
         x = invals[0]

@@ -16,11 +16,13 @@ What happens in the two failure modes (both reported in ``status``):
   the predicted set, so the model (the noise bounds, or a healthy sensor) is wrong: a guaranteed
   fault alarm (§3). The filter then discards that step's measurements and carries the predicted
   ellipsoid forward, which still contains the state when the fault is in the sensors.
-- **Unbounded set** (``Status.UNBOUNDED``): the set's size passed ``max_radius`` or lost positive
-  definiteness or finiteness (e.g. a filter that never sees x_1 of the Duffing system: its
-  remainder bound grows like P_11^{3/2}). The set then contains everything: the filter stops
-  updating, never signals an empty set again, and reports a shape of +inf on the diagonal; the
-  flag stays set for the rest of the run.
+- **Unbounded set** (``Status.UNBOUNDED``): the filtered or predicted set's size passed
+  ``max_radius``, or it lost finiteness, positive definiteness or a condition number the
+  arithmetic can carry (``SetStatus.ILL_CONDITIONED`` beside it), e.g. a filter that never sees
+  x_1 of the Duffing system: its remainder bound grows like P_11^{3/2}. The set then contains
+  everything: the filter stops updating, never signals an empty set again, and reports a shape of
+  +inf on the diagonal, from the step whose filtered set went bad (one step later when only the
+  prediction did); the flag stays set for the rest of the run.
 
 A NaN entry of y_k means "no measurement from that sensor at step k" (its strip is skipped);
 the fault-isolation banks of :mod:`jaxest.setmembership.fdi` feed sensor subsets this way.
@@ -41,9 +43,10 @@ from jaxest._status import finite_status as check_finite_status
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
+    condition_number,
     contains,
     intersect_strip,
-    is_positive_definite,
+    max_condition,
 )
 from jaxest.setmembership.interval import remainder_bound
 from jaxest.setmembership.status import SetStatus as Status
@@ -53,7 +56,8 @@ class BoundedNoiseModel(eqx.Module):
     """x_{k+1} = f(x_k, u_k) + w_k,  y_k = h(x_k, u_k) + v_k,  |w| <= process_bound,
     |v| <= measurement_bound (element-wise half-widths of the boxes W and V, eqs 3-4).
 
-    ``f(x, u)`` and ``h(x, u)`` are written in ``jax.numpy`` (``u`` is ``None`` without inputs).
+    The bounds may be given as Python lists (converted to arrays). ``f(x, u)`` and ``h(x, u)``
+    are written in ``jax.numpy`` (``u`` is ``None`` without inputs).
     The remainder bounds default to the automatic interval bound of
     :func:`~jaxest.setmembership.interval.remainder_bound`; ``f_remainder(center, shape, u)`` /
     ``h_remainder(center, shape, u)`` may replace it by a closed form (it must be guaranteed).
@@ -137,8 +141,15 @@ class SMFResult(AbstractResult):
 
 
 class SetMembershipFilter(AbstractEstimator):
-    """The nonlinear ellipsoidal SMF (module docstring). ``max_radius``: the set counts as
-    unbounded once some sqrt(P_ii) exceeds it (default: 1 / sqrt(eps) of the dtype)."""
+    """The nonlinear ellipsoidal SMF (module docstring).
+
+    A set is trusted while its shape matrix is finite, positive definite, has condition number
+    at most :func:`~jaxest.setmembership.ellipsoid.max_condition` (kappa n eps <= 2^-10) and every
+    sqrt(P_ii) is at most ``max_radius``. The default radius limit is b sqrt(kappa_max), b the
+    least positive noise half-width: once measured, the set's smallest semi-axis is of the order
+    of the strip and box half-widths, so a longer axis than that means a condition number the
+    arithmetic cannot carry (and a set far larger than the noise that shaped it).
+    """
 
     max_radius: float | None = None
 
@@ -146,10 +157,25 @@ class SetMembershipFilter(AbstractEstimator):
         center, shape = jnp.asarray(prior.center), jnp.asarray(prior.shape)
         return SMFState(center, shape, jnp.zeros((), bool))
 
-    def _limit(self, dtype):
+    def _limit(self, model, dtype):
+        """max_radius^2 (the default from the noise half-widths, class docstring)."""
         if self.max_radius is not None:
-            return self.max_radius**2
-        return 1.0 / jnp.finfo(dtype).eps
+            return jnp.asarray(self.max_radius**2, dtype)
+        bounds = jnp.concatenate([model.process_bound, model.measurement_bound]).astype(dtype)
+        smallest = jnp.min(jnp.where(bounds > 0, bounds, jnp.inf))
+        n = model.state_dim
+        return jnp.where(jnp.isfinite(smallest), smallest**2, 1.0) * max_condition(dtype, n)
+
+    def _trusted(self, model, center, shape):
+        """``(trusted, conditioned)``: the set passes every check / the conditioning one."""
+        conditioned = condition_number(shape) <= max_condition(shape.dtype, shape.shape[-1])
+        trusted = (
+            conditioned
+            & jnp.all(jnp.isfinite(shape))
+            & jnp.all(jnp.isfinite(center))
+            & jnp.all(jnp.diagonal(shape) <= self._limit(model, shape.dtype))
+        )
+        return trusted, conditioned
 
     def measurement_update(self, model, center, shape, y, u):
         """Eqs 18-36; returns ``(center, shape, empty, remainder)``."""
@@ -188,30 +214,28 @@ class SetMembershipFilter(AbstractEstimator):
     def step(self, model, state: SMFState, k, y, u, key=None):
         c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u)
         empty = empty & ~state.unbounded
+        trusted, conditioned = self._trusted(model, c, P)
+        unbounded = state.unbounded | ~trusted  # flagged at the step the filtered set goes bad
         c_next, P_next, alpha_f = self.time_update(model, c, P, u)
-        diag = jnp.diagonal(P_next)
-        healthy = (
-            jnp.all(jnp.isfinite(P_next))
-            & jnp.all(jnp.isfinite(c_next))
-            & jnp.all(diag <= self._limit(P.dtype))
-            & is_positive_definite(P_next)
-        )
-        unbounded_next = state.unbounded | ~healthy
+        trusted_next, conditioned_next = self._trusted(model, c_next, P_next)
+        unbounded_next = unbounded | ~trusted_next
         frozen = lambda new, old: jnp.where(unbounded_next, old, new)
         new_state = SMFState(
             frozen(c_next, state.center), frozen(P_next, state.shape), unbounded_next
         )
         n = P.shape[-1]
         everything = jnp.where(jnp.eye(n, dtype=bool), jnp.inf, 0.0).astype(P.dtype)
+        ill = ~state.unbounded & ~(conditioned & conditioned_next)
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)
-            | jnp.where(state.unbounded, Status.UNBOUNDED, 0)
+            | jnp.where(unbounded, Status.UNBOUNDED, 0)
+            | jnp.where(ill, Status.ILL_CONDITIONED, 0)
             | check_finite_status(c)
         ).astype(jnp.int32)
         output = SMFOutput(
             center=c,
-            shape=jnp.where(state.unbounded, everything, P),
-            remainder=jnp.where(state.unbounded, jnp.inf, alpha_f),
+            shape=jnp.where(unbounded, everything, P),
+            remainder=jnp.where(unbounded, jnp.inf, alpha_f),
             measurement_remainder=jnp.where(state.unbounded, jnp.inf, alpha_h),
             status=status,
         )

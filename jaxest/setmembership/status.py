@@ -14,4 +14,9 @@ SetStatus = Status.extend(
         "the set grew without bound (it contains everything): the state is not observable from "
         "the measurements used",
     ),
+    ILL_CONDITIONED=(
+        32,
+        "the filtered or predicted shape matrix lost definiteness or passed the condition number "
+        "float arithmetic can carry (max_condition); the set is declared unbounded",
+    ),
 )

@@ -30,6 +30,7 @@ from jaxest.models import NonlinearGaussian
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.setmembership import fdi
+from jaxest.setmembership.ellipsoid import is_positive_definite
 from jaxest.setmembership.smf import SetMembershipFilter
 from jaxest.systems import duffing
 
@@ -45,6 +46,7 @@ VARIANCE_RULES = {"w^2/3": lambda w: w**2 / 3, "(w/3)^2": lambda w: (w / 3) ** 2
 #: the detection filter (every sensor) and the isolation filters (sensor 1 only, sensor 2 only);
 #: method 1's filter i and method 2's filter j != i are the same filter when m = 2
 FILTER_MASKS = np.array([[True, True], [True, False], [False, True]])
+FILTER_NAMES = ("all sensors", "sensor 1", "sensor 2")
 PAPER = {
     "detection": {
         "0": {"missed_rate": 0.755, "min_delay": 0, "max_delay": 1, "mean_delay": 0.02},
@@ -145,6 +147,60 @@ def single_filter_function(closed_form_bound: bool = False):
     return batched_over_runs(one)
 
 
+#: containment stress (fault-free, every filter of the bank): noise scale -> runs (full, quick)
+STRESS_RUNS = {1.0: (10_000, 200), 5.0: (1_000, 50)}
+
+
+def containment_stress_function(noise_scale: float):
+    """A jitted ``keys -> (outside, unflagged_not_pd, unbounded)``, each (runs, filters, T), over
+    fault-free runs with the noise and its bounds times ``noise_scale`` (closed-form remainder):
+    whether the truth left a reported set, whether a set neither positive definite nor flagged
+    unbounded was reported, and the UNBOUNDED flags."""
+    model = duffing.model(closed_form_bound=True, noise_scale=noise_scale)
+    prior = SetMembershipFilter().predict(model, duffing.prior())
+    masks = jnp.asarray(FILTER_MASKS)
+
+    def one(key):
+        bias = jnp.zeros((duffing.NUM_STEPS, 2))
+        states, ys = duffing.simulate(key, bias, noise_scale=noise_scale)
+
+        def smf_run(mask):
+            result = run_estimator(
+                SetMembershipFilter(), model, fdi.sensor_subset(ys, mask), prior=prior
+            )
+            pd = jax.vmap(is_positive_definite)(result.shape)
+            return ~result.contains(states), ~pd & ~result.unbounded, result.unbounded
+
+        return jax.vmap(smf_run)(masks)
+
+    return batched_over_runs(one)
+
+
+def containment_stress(seed: int, quick: bool) -> dict:
+    """Run :func:`containment_stress_function` at each scale of :data:`STRESS_RUNS`."""
+    out = {}
+    for scale, (full, small) in STRESS_RUNS.items():
+        started = time.perf_counter()
+        runs = small if quick else full
+        outside, not_pd, unbounded = (
+            np.asarray(a)
+            for a in containment_stress_function(scale)(
+                jax.random.split(jax.random.key(seed), runs)
+            )
+        )
+        out[f"noise_x{scale:g}"] = {
+            "runs": runs,
+            "containment_rate": float(1.0 - outside.mean()),
+            "steps_outside": int(outside.sum()),
+            "unflagged_not_positive_definite": int(not_pd.sum()),
+            "unbounded_rate_by_filter": {
+                name: float(unbounded[:, i].mean()) for i, name in enumerate(FILTER_NAMES)
+            },
+            "wall_seconds": time.perf_counter() - started,
+        }
+    return out
+
+
 def summarise(inconsistent, contains, unbounded, ekf_alarms) -> dict:
     """Rates of one Monte Carlo (arrays from :func:`monte_carlo_function`)."""
     inconsistent, contains = np.asarray(inconsistent), np.asarray(contains)
@@ -177,14 +233,12 @@ def summarise(inconsistent, contains, unbounded, ekf_alarms) -> dict:
     }
     out["containment_rate"] = float(np.mean(contains[:, 0]))
     out["containment_rate_by_filter"] = {
-        name: float(np.mean(contains[:, 0, i]))
-        for i, name in enumerate(("all sensors", "sensor 1", "sensor 2"))
+        name: float(np.mean(contains[:, 0, i])) for i, name in enumerate(FILTER_NAMES)
     }
     out["fault_free_inconsistency_rate"] = float(np.mean(np.any(inconsistent[:, 0], axis=-1)))
     unb = np.asarray(unbounded)[:, 0]  # (runs, F, T)
     out["unbounded_rate_by_filter"] = {
-        name: float(np.mean(np.any(unb[:, i], axis=-1)))
-        for i, name in enumerate(("all sensors", "sensor 1", "sensor 2"))
+        name: float(np.mean(np.any(unb[:, i], axis=-1))) for i, name in enumerate(FILTER_NAMES)
     }
     first = np.where(np.any(unb[:, 2], axis=-1), np.argmax(unb[:, 2], axis=-1) + 1, -1)
     out["sensor2_only_unbounded_from_step"] = {
@@ -264,7 +318,7 @@ def run(
     directory.mkdir(parents=True, exist_ok=True)
     study = monte_carlo_function(closed_form_bound=True)
     summaries = []
-    with Progress(NAME, total=len(seeds) + 1) as progress:
+    with Progress(NAME, total=len(seeds) + 2) as progress:
         for s in seeds:
             keys = jax.random.split(jax.random.key(s), runs)
             outputs = study(keys)
@@ -277,6 +331,8 @@ def run(
         )
         _figures(directory, *example)
         progress.advance("automatic bound check, figures")
+        stress = containment_stress(seed, quick)
+        progress.advance("containment stress")
     summary = dict(summaries[0])
     summary.update(
         runs=runs,
@@ -287,6 +343,7 @@ def run(
             "max_relative_difference": float(relative),
             "same_detection_flags": bool(np.array_equal(np.asarray(flags), first_flags)),
         },
+        containment_stress=stress,
         paper=PAPER,
         wall_seconds=time.perf_counter() - started,
     )

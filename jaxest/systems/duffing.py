@@ -58,17 +58,20 @@ def observe(x, u=None):
 
 
 def model(
-    closed_form_bound: bool = False, dtype=None, dynamics: Duffing | None = None
+    closed_form_bound: bool = False,
+    dtype=None,
+    dynamics: Duffing | None = None,
+    noise_scale: float = 1.0,
 ) -> BoundedNoiseModel:
     """The bounded-noise Duffing model of table 1 (automatic remainder bounds unless
-    ``closed_form_bound``, which uses eq 42)."""
+    ``closed_form_bound``, which uses eq 42); both noise bounds times ``noise_scale``."""
     dynamics = dynamics or Duffing()
     dtype = dtype or jnp.result_type(float)
     return BoundedNoiseModel(
         f=dynamics,
         h=observe,
-        process_bound=jnp.full(2, PROCESS_BOUND, dtype),
-        measurement_bound=jnp.full(2, MEASUREMENT_BOUND, dtype),
+        process_bound=jnp.full(2, noise_scale * PROCESS_BOUND, dtype),
+        measurement_bound=jnp.full(2, noise_scale * MEASUREMENT_BOUND, dtype),
         f_remainder=dynamics.remainder_bound if closed_form_bound else None,
     )
 
@@ -87,16 +90,24 @@ def sensor_bias(L, num_steps: int = NUM_STEPS, dtype=None) -> Float[Array, "N 2"
     return jnp.stack([b1, jnp.zeros_like(b1)], axis=-1)
 
 
-def simulate(key, bias: Float[Array, "N 2"], dynamics: Duffing | None = None, x0=None):
+def simulate(
+    key,
+    bias: Float[Array, "N 2"],
+    dynamics: Duffing | None = None,
+    x0=None,
+    noise_scale: float = 1.0,
+):
     """Truth and measurements for paper steps k = 1..N: x_k = f(x_{k-1}) + w_{k-1},
-    y_k = x_k + b_k + v_k, noise uniform in its box. Returns ``(states, ys)``, each (N, 2)."""
+    y_k = x_k + b_k + v_k, noise uniform in its box (half-widths times ``noise_scale``).
+    Returns ``(states, ys)``, each (N, 2)."""
     dynamics = dynamics or Duffing()
     dtype = bias.dtype
     x0 = jnp.asarray(X0 if x0 is None else x0, dtype)
     kw, kv = jax.random.split(key)
     N = bias.shape[0]
-    w = jax.random.uniform(kw, (N, 2), dtype, -PROCESS_BOUND, PROCESS_BOUND)
-    v = jax.random.uniform(kv, (N, 2), dtype, -MEASUREMENT_BOUND, MEASUREMENT_BOUND)
+    wbar, vbar = noise_scale * PROCESS_BOUND, noise_scale * MEASUREMENT_BOUND
+    w = jax.random.uniform(kw, (N, 2), dtype, -wbar, wbar)
+    v = jax.random.uniform(kv, (N, 2), dtype, -vbar, vbar)
 
     def body(x, w_k):
         x_next = dynamics(x) + w_k
