@@ -2,8 +2,13 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= results
+# JAX's persistent compilation cache, outside the clone: a second `make test` / `make reproduce`
+# reloads compiled programs instead of compiling them again (tests/conftest.py uses the same path).
+JAX_COMPILATION_CACHE_DIR ?= $(or $(XDG_CACHE_HOME),$(HOME)/.cache)/jaxest/jax
+export JAX_COMPILATION_CACHE_DIR
+export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS ?= 0.2
 
-.PHONY: reproduce test lint format clean
+.PHONY: reproduce test lint format clean docs docs-check wheel-check
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -17,6 +22,13 @@ $(BIN)/.installed-dev: pyproject.toml
 	$(BIN)/pip install --quiet -e ".[dev]"
 	$(BIN)/python -m ipykernel install --prefix $(VENV) --name python3 > /dev/null
 	touch $@ $(BIN)/.installed
+
+$(BIN)/.installed-docs: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -e ".[dev,docs]"
+	$(BIN)/python -m ipykernel install --prefix $(VENV) --name python3 > /dev/null
+	touch $@ $(BIN)/.installed-dev $(BIN)/.installed
 
 reproduce: $(BIN)/.installed
 	$(BIN)/python -m jaxest reproduce all --out $(OUT)
@@ -32,5 +44,26 @@ format: $(BIN)/.installed-dev
 	$(BIN)/ruff check --fix .
 	$(BIN)/ruff format .
 
+# The site, notebooks executed at build time, into site/. mkdocs-jupyter's cache keys on the
+# notebook alone (not on jaxest's code), so it is dropped: every build executes every notebook.
+docs: $(BIN)/.installed-docs
+	rm -rf .cache/mkdocs-jupyter
+	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/mkdocs build --strict
+
+# Opens every built page in headless Chromium (skips, saying so, where chromium is absent).
+docs-check: docs
+	$(BIN)/python docs/check_site.py site
+
+# A built wheel installs into a clean venv (outside the clone) and runs a quick study.
+WHEEL_TMP ?= $(or $(TMPDIR),/tmp)/jaxest-wheel-check
+wheel-check:
+	rm -rf $(WHEEL_TMP)
+	$(PYTHON) -m venv $(WHEEL_TMP)/venv
+	$(WHEEL_TMP)/venv/bin/pip install --quiet --upgrade pip build
+	$(WHEEL_TMP)/venv/bin/python -m build --wheel --outdir $(WHEEL_TMP)/dist .
+	$(WHEEL_TMP)/venv/bin/pip install --quiet $(WHEEL_TMP)/dist/jaxest-*.whl
+	cd $(WHEEL_TMP) && venv/bin/python -m jaxest reproduce filters --quick --out results
+	test -s $(WHEEL_TMP)/results/filters/summary.json
+
 clean:
-	rm -rf $(VENV) results .pytest_cache
+	rm -rf $(VENV) results .pytest_cache site .cache/mkdocs-jupyter

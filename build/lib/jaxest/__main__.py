@@ -1,0 +1,5 @@
+import sys
+
+from jaxest.cli import main
+
+sys.exit(main())

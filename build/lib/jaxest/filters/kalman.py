@@ -1,0 +1,160 @@
+"""Covariance-form Kalman filter / EKF (Joseph update), the paper's EKF (covariance time update,
+information-form measurement update, eqs 6-10 of Zhang, Dai & Zhang) and the information filter.
+
+On a :class:`~jaxest.LinearGaussian` model each is an exact Kalman filter; on a
+:class:`~jaxest.NonlinearGaussian` model each linearises f at x(k|k) and h at x(k|k-1) (EKF).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from jaxest.filters.common import (
+    LOG_2PI,
+    StepOutput,
+    check_prior,
+    covariance_predict,
+    covariance_step,
+    masked_measurement,
+    pack_result,
+    step_status,
+)
+from jaxest.linalg import chol_inverse, inv_spd, logdet_chol, symmetrize
+
+
+class CovarianceState(eqx.Module):
+    """x(k|k-1), P(k|k-1) and the time index k."""
+
+    mean: Float[Array, " n"]
+    cov: Float[Array, "n n"]
+    k: Int[Array, ""]
+
+
+class KalmanFilter(eqx.Module):
+    """The conventional covariance-form Kalman filter (EKF on nonlinear models) with the Joseph
+    form P+ = (I - K H) P (I - K H)^T + K R K^T of the measurement update."""
+
+    def init(self, model, prior) -> CovarianceState:
+        prior = check_prior(prior)
+        return CovarianceState(prior.mean, prior.cov, jnp.zeros((), jnp.int32))
+
+    def step(self, model, state: CovarianceState, y, u):
+        x_next, P_next, (x_post, P_post, e, S, loglik) = covariance_step(
+            model, state.mean, state.cov, y, u, state.k
+        )
+        status = step_status(x_next, P_next, loglik, cov=P_post)
+        out = StepOutput(state.mean, state.cov, x_post, P_post, e, S, loglik, status)
+        return CovarianceState(x_next, P_next, state.k + 1), out
+
+    result = staticmethod(pack_result)
+
+
+def information_loglik(e, R_inv, b, P_post, logdet_R, logdet_prior, logdet_post, num_observed):
+    """log N(e; 0, S), S = H P- H^T + R, from information-form quantities (matrix determinant
+    lemma and Woodbury): ln det S = ln det R + ln det P- - ln det P+,
+    e^T S^-1 e = e^T R^-1 e - b^T P+ b with b = H^T R^-1 e."""
+    quad = e @ R_inv @ e - b @ P_post @ b
+    return -0.5 * (num_observed * LOG_2PI + logdet_R + logdet_prior - logdet_post + quad)
+
+
+class InformationUpdate(eqx.Module):
+    """The information-form measurement update shared by :class:`EKF` and
+    :class:`InformationFilter` (eq 9): Y+ = Y- + H^T R^-1 H and what is derived from it."""
+
+    P_post: Float[Array, "n n"]
+    info_post: Float[Array, "n n"]  # Y+ = P+^-1
+    post_chol: Float[Array, "n n"]  # its Cholesky factor
+    HtR_inv: Float[Array, "n m"]  # H^T R^-1
+    b: Float[Array, " n"]  # H^T R^-1 e
+    S: Float[Array, "m m"]  # innovation covariance H P- H^T + R
+    loglik: Float[Array, ""]
+
+
+def information_update(info_prior, P, logdet_prior, meas) -> InformationUpdate:
+    """Eq 9 from the prior information matrix ``info_prior`` = P^-1 (and ln det P), with the
+    likelihood term of :func:`information_loglik`."""
+    R_chol = jnp.linalg.cholesky(meas.R)
+    R_inv = chol_inverse(R_chol)
+    HtR_inv = meas.H.T @ R_inv
+    b = HtR_inv @ meas.innovation
+    info_post = info_prior + symmetrize(HtR_inv @ meas.H)
+    post_chol = jnp.linalg.cholesky(info_post)
+    P_post = chol_inverse(post_chol)
+    loglik = information_loglik(
+        meas.innovation, R_inv, b, P_post,
+        logdet_chol(R_chol), logdet_prior, -logdet_chol(post_chol), meas.num_observed,
+    )  # fmt: skip
+    S = symmetrize(meas.H @ P @ meas.H.T + meas.R)
+    return InformationUpdate(P_post, info_post, post_chol, HtR_inv, b, S, loglik)
+
+
+class EKF(eqx.Module):
+    """The paper's EKF, eqs 6-10: covariance-mode time update
+    P(k+1|k) = F P(k|k) F^T + G Q G^T (eq 7) and information-mode measurement update
+    P(k|k)^-1 = P(k|k-1)^-1 + H^T R^-1 H (eq 9), K = P(k|k) H^T R^-1 (eq 10),
+    x(k|k) = x(k|k-1) + K (y - h(x(k|k-1))) (eq 8). Full (correlated) R is allowed."""
+
+    def init(self, model, prior) -> CovarianceState:
+        prior = check_prior(prior)
+        return CovarianceState(prior.mean, prior.cov, jnp.zeros((), jnp.int32))
+
+    def step(self, model, state: CovarianceState, y, u):
+        x, P, k = state.mean, state.cov, state.k
+        y_pred, H, R = model.observation(x, u, k)
+        meas = masked_measurement(y, y_pred, H, R)
+        P_chol = jnp.linalg.cholesky(P)
+        upd = information_update(chol_inverse(P_chol), P, logdet_chol(P_chol), meas)  # eq 9
+        x_post = x + upd.P_post @ upd.b  # eqs 8, 10
+        x_next, P_next = covariance_predict(model, x_post, upd.P_post, u, k)  # eqs 6-7
+        status = step_status(x_next, P_next, upd.loglik, cov=upd.P_post)
+        out = StepOutput(x, P, x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
+        return CovarianceState(x_next, P_next, k + 1), out
+
+    result = staticmethod(pack_result)
+
+
+class InformationState(eqx.Module):
+    """Information vector z = Y x(k|k-1) and information matrix Y = P(k|k-1)^-1."""
+
+    info_vector: Float[Array, " n"]
+    info_matrix: Float[Array, "n n"]
+    k: Int[Array, ""]
+
+
+class InformationFilter(eqx.Module):
+    """The information filter: propagates Y = P^-1 and z = Y x.
+
+    Measurement update Y+ = Y- + H^T R^-1 H, z+ = z- + H^T R^-1 (y - h(x-) + H x-); time update
+    by the Woodbury form Y(k+1|k) = A - A G (Q^-1 + G^T A G)^-1 G^T A, A = F^-T Y(k|k) F^-1,
+    which needs F invertible and Q positive definite (Anderson & Moore, Optimal Filtering, 6.3).
+    """
+
+    def init(self, model, prior) -> InformationState:
+        prior = check_prior(prior)
+        Y = inv_spd(prior.cov)
+        return InformationState(Y @ prior.mean, Y, jnp.zeros((), jnp.int32))
+
+    def step(self, model, state: InformationState, y, u):
+        Y, k = state.info_matrix, state.k
+        Y_chol = jnp.linalg.cholesky(Y)
+        P = chol_inverse(Y_chol)
+        x = P @ state.info_vector
+        y_pred, H, R = model.observation(x, u, k)
+        meas = masked_measurement(y, y_pred, H, R)
+        upd = information_update(Y, P, -logdet_chol(Y_chol), meas)
+        x_post = upd.P_post @ (state.info_vector + upd.HtR_inv @ (meas.H @ x) + upd.b)
+        x_next, F, G, Q = model.transition(x_post, u, k)
+        F_inv_T = jnp.linalg.inv(F).T
+        A = symmetrize(F_inv_T @ upd.info_post @ F_inv_T.T)
+        inner = inv_spd(Q) + G.T @ A @ G
+        Y_next = symmetrize(A - A @ G @ jnp.linalg.solve(inner, G.T @ A))
+        status = step_status(x_next, Y_next, upd.loglik, cov_factor=upd.post_chol)
+        out = StepOutput(x, P, x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
+        return InformationState(Y_next @ x_next, Y_next, k + 1), out
+
+    result = staticmethod(pack_result)
+
+
+__all__ = ["EKF", "CovarianceState", "InformationFilter", "KalmanFilter"]

@@ -1,0 +1,182 @@
+"""SVD-based filters: P = U diag(D)^2 U^T is propagated through its SVD factors.
+
+- :class:`SVDEKF`: Zhang, Dai & Zhang's SVD-based EKF. Time update (eqs 11-15): the SVD of the
+  stacked array [D U^T F^T; Lq^T G^T] (Lq Lq^T = Q) gives U(k+1|k) = V', D(k+1|k) = D'.
+  Measurement update in information form (eqs 16-23): with L L^T = R^-1 (eq 17), the SVD of
+  [L^T H U; D^-1] (eq 18-19) gives U+ = U V'', D+ = D''^-1, and K = U+ D+^2 U+^T H^T L L^T
+  (eq 24). The paper gives no likelihood; it follows here from the same factors by the
+  determinant lemma (see :func:`~jaxest.filters.kalman.information_loglik`).
+- :class:`ImprovedSVDKF`: Kulikova & Tsyganova's covariance-form SVD filter (NOTES.md section 1):
+  no inverse of D or R, PSD Q allowed, Joseph-form covariance and the likelihood from the
+  innovation's own SVD.
+
+Derivatives. The SVD's derivative is NaN when singular values repeat (P0 = c I, isotropic Q),
+though every output depends on P only through U D^2 U^T. So each step is a custom JVP whose
+tangent is that of the conventional covariance-form step (:func:`covariance_step`) at the same
+point, mapped back to factor tangents by :func:`~jaxest.linalg.cov_tangent_to_factor`: gradients
+are finite and equal the EKF's.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from jaxest.filters.common import (
+    LOG_2PI,
+    StepOutput,
+    check_prior,
+    covariance_step,
+    masked_measurement,
+    pack_result,
+    step_status,
+)
+from jaxest.filters.kalman import information_loglik
+from jaxest.linalg import (
+    cov_from_factor,
+    cov_tangent_to_factor,
+    factor_psd,
+    factor_tangent_to_cov,
+    logdet_chol,
+    right_svd,
+    symmetrize,
+)
+
+
+class SVDState(eqx.Module):
+    """x(k|k-1), factors U, D of P(k|k-1) = U diag(D)^2 U^T, and the time index k."""
+
+    mean: Float[Array, " n"]
+    U: Float[Array, "n n"]
+    D: Float[Array, " n"]
+    k: Int[Array, ""]
+
+
+def svd_time_update(U, D, F, noise_rows):
+    """Eqs 13-15: U', D' of F U D^2 U^T F^T + N^T N from the SVD of [D U^T F^T; N]."""
+    D_next, U_next = right_svd(jnp.concatenate([(D[:, None] * U.T) @ F.T, noise_rows]))
+    return U_next, D_next
+
+
+def sqrt_rows(M):
+    """Rows C with C^T C = M for a symmetric PSD M, from its symmetric SVD: diag(s)^1/2 V^T."""
+    V, s = factor_psd(M)
+    return s[:, None] * V.T
+
+
+def paper_svd_step(model, x, U, D, y, u, k):
+    """One step of the paper's SVD-EKF: measurement update (eqs 16-24), then time update (13-15)."""
+    y_pred, H, R = model.observation(x, u, k)
+    meas = masked_measurement(y, y_pred, H, R)
+    R_chol = jnp.linalg.cholesky(meas.R)
+    eye_m = jnp.eye(meas.R.shape[0], dtype=R.dtype)
+    L = jax.scipy.linalg.solve_triangular(R_chol, eye_m, lower=True).T  # L L^T = R^-1 (eq 17)
+    R_inv = L @ L.T
+    s, V = right_svd(jnp.concatenate([L.T @ meas.H @ U, jnp.diag(1.0 / D)]))  # eqs 18-19
+    U_post, D_post = U @ V, 1.0 / s  # eqs 21-23
+    P_post = cov_from_factor(U_post, D_post)
+    b = meas.H.T @ R_inv @ meas.innovation
+    x_post = x + P_post @ b  # eqs 8, 24
+    loglik = information_loglik(
+        meas.innovation, R_inv, b, P_post,
+        logdet_chol(R_chol),
+        2.0 * jnp.sum(jnp.log(D)), 2.0 * jnp.sum(jnp.log(D_post)), meas.num_observed,
+    )  # fmt: skip
+    S = symmetrize(meas.H @ cov_from_factor(U, D) @ meas.H.T + meas.R)
+    x_next, F, G, Q = model.transition(x_post, u, k)
+    U_next, D_next = svd_time_update(U_post, D_post, F, sqrt_rows(Q) @ G.T)
+    return x_next, U_next, D_next, (x_post, P_post, meas.innovation, S, loglik)
+
+
+def improved_svd_step(model, x, U, D, y, u, k):
+    """One step of Kulikova & Tsyganova's covariance-form SVD filter (NOTES.md section 1)."""
+    y_pred, H, R = model.observation(x, u, k)
+    meas = masked_measurement(y, y_pred, H, R)
+    R_rows = sqrt_rows(meas.R)  # D_R^1/2 Q_R^T
+    # meas. 1: [D_R^1/2 Q_R^T; D-^1/2 Q-^T H^T] = W [D_Re^1/2; 0] Q_Re^T
+    Re_sqrt, Q_Re = right_svd(jnp.concatenate([R_rows, (D[:, None] * U.T) @ meas.H.T]))
+    P_prior = cov_from_factor(U, D)
+    Kbar = P_prior @ meas.H.T @ Q_Re
+    Re = Re_sqrt**2
+    K = (Kbar / Re) @ Q_Re.T
+    ebar = Q_Re.T @ meas.innovation
+    x_post = x + Kbar @ (ebar / Re)
+    # meas. 2 (Joseph): [D-^1/2 Q-^T (I-KH)^T; D_R^1/2 Q_R^T K^T] = W [D+^1/2; 0] Q+^T
+    IKH = jnp.eye(x.shape[0], dtype=U.dtype) - K @ meas.H
+    D_post, U_post = right_svd(jnp.concatenate([(D[:, None] * U.T) @ IKH.T, R_rows @ K.T]))
+    # masked rows have unit variance and zero innovation: they add ln 1 = 0 and 0 below
+    loglik = -0.5 * (meas.num_observed * LOG_2PI + jnp.sum(jnp.log(Re)) + jnp.sum(ebar**2 / Re))
+    S = symmetrize((Q_Re * Re) @ Q_Re.T)
+    x_next, F, G, Q = model.transition(x_post, u, k)
+    U_next, D_next = svd_time_update(U_post, D_post, F, sqrt_rows(Q) @ G.T)
+    return (
+        x_next,
+        U_next,
+        D_next,
+        (x_post, cov_from_factor(U_post, D_post), meas.innovation, S, loglik),
+    )
+
+
+@eqx.filter_custom_jvp
+def factored_step(model, x, U, D, y, u, k, *, primal):
+    """``primal(model, x, U, D, y, u, k)`` with the covariance-level derivative (module docstring)."""
+    return primal(model, x, U, D, y, u, k)
+
+
+@factored_step.def_jvp
+def _factored_step_jvp(primals, tangents, *, primal):
+    model, x, U, D, y, u, k = primals
+    t_model, t_x, t_U, t_D, t_y, t_u, _ = tangents
+    out = factored_step(model, x, U, D, y, u, k, primal=primal)
+    zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
+    dP = factor_tangent_to_cov(U, D, zeros(t_U, U), zeros(t_D, D))
+    ref = lambda model, x, P, y, u: covariance_step(model, x, P, y, u, k)
+    _, (dx_next, dP_next, d_outputs) = eqx.filter_jvp(
+        ref, (model, x, cov_from_factor(U, D), y, u), (t_model, zeros(t_x, x), dP, t_y, t_u)
+    )
+    x_next, U_next, D_next, outputs = out
+    dU_next, dD_next = cov_tangent_to_factor(U_next, D_next, symmetrize(dP_next))
+    d_outputs = jax.tree.map(zeros, d_outputs, outputs, is_leaf=lambda t: t is None)
+    return out, (dx_next, dU_next, dD_next, d_outputs)
+
+
+def _svd_filter_step(primal, model, state: SVDState, y, u):
+    x_next, U_next, D_next, (x_post, P_post, e, S, loglik) = factored_step(
+        model, state.mean, state.U, state.D, y, u, state.k, primal=primal
+    )
+    status = step_status(x_next, U_next, D_next, P_post, loglik, positive=jnp.all(D_next > 0))
+    P_prior = cov_from_factor(state.U, state.D)
+    out = StepOutput(state.mean, P_prior, x_post, P_post, e, S, loglik, status)
+    return SVDState(x_next, U_next, D_next, state.k + 1), out
+
+
+def _svd_init(prior) -> SVDState:
+    prior = check_prior(prior)
+    U, D = factor_psd(prior.cov)
+    return SVDState(prior.mean, U, D, jnp.zeros((), jnp.int32))
+
+
+class SVDEKF(eqx.Module):
+    """The paper's SVD-based EKF (eqs 11-25). Q and R positive definite (R^-1 is formed)."""
+
+    def init(self, model, prior) -> SVDState:
+        return _svd_init(prior)
+
+    def step(self, model, state: SVDState, y, u):
+        return _svd_filter_step(paper_svd_step, model, state, y, u)
+
+    result = staticmethod(pack_result)
+
+
+class ImprovedSVDKF(eqx.Module):
+    """Kulikova & Tsyganova's improved covariance-form SVD filter (NOTES.md section 1)."""
+
+    def init(self, model, prior) -> SVDState:
+        return _svd_init(prior)
+
+    def step(self, model, state: SVDState, y, u):
+        return _svd_filter_step(improved_svd_step, model, state, y, u)
+
+    result = staticmethod(pack_result)

@@ -1,0 +1,50 @@
+"""Writing study outputs: JSON summaries and Markdown tables."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+
+def to_jsonable(value):
+    """Convert arrays/NumPy scalars to plain Python; non-finite floats become ``None`` (null)."""
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v) for v in value]
+    if hasattr(value, "shape") or isinstance(value, np.generic):
+        return to_jsonable(np.asarray(value).tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def write_json(path: Path, data) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(to_jsonable(data), indent=2))
+
+
+def markdown_table(headers: list[str], rows: list[list], floatfmt: str = ".4g") -> str:
+    """A GitHub-flavoured Markdown table."""
+
+    def cell(v):
+        if isinstance(v, float | np.floating):
+            return format(float(v), floatfmt)
+        return str(v)
+
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(cell(v) for v in row) + " |" for row in rows]
+    return "\n".join(lines) + "\n"
+
+
+def emit_json(data, path=None) -> str:
+    """Print ``data`` as JSON (non-finite numbers as null) and write it to ``path`` if given:
+    the output of every benchmark script."""
+    text = json.dumps(to_jsonable(data), indent=1)
+    if path:
+        Path(path).write_text(text)
+    print(text)
+    return text

@@ -1,0 +1,32 @@
+"""Set-membership estimation: interval arithmetic, ellipsoid operations, the nonlinear ellipsoidal
+set-membership filter and guaranteed sensor fault detection and isolation (Chai & Sun 2007)."""
+
+from jaxest.setmembership.ellipsoid import (
+    Ellipsoid,
+    add_box,
+    add_segment,
+    contains,
+    intersect_strip,
+)
+from jaxest.setmembership.interval import Interval, hessian_interval, remainder_bound
+from jaxest.setmembership.smf import (
+    BoundedNoiseModel,
+    SetMembershipFilter,
+    SMFResult,
+    set_membership_filter,
+)
+
+__all__ = [
+    "BoundedNoiseModel",
+    "Ellipsoid",
+    "Interval",
+    "SMFResult",
+    "SetMembershipFilter",
+    "add_box",
+    "add_segment",
+    "contains",
+    "hessian_interval",
+    "intersect_strip",
+    "remainder_bound",
+    "set_membership_filter",
+]

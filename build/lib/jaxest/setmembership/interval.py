@@ -1,0 +1,463 @@
+"""Interval arithmetic in JAX with outward rounding, and guaranteed Lagrange-remainder bounds.
+
+An :class:`Interval` holds arrays ``lo <= hi`` of one shape. Every operation returns an
+interval that contains the exact real result of the operation on every point of its arguments:
+
+- ``+ - * /`` and ``sqrt`` are correctly rounded in IEEE arithmetic, so moving each computed
+  endpoint one ulp outward (``jnp.nextafter``) is enough;
+- sums of k terms, integer powers and dot products carry up to k roundings: the endpoints move
+  outward by k * eps * |value| (:func:`_widen`) and then one more ulp;
+- library functions (exp, log, sin, tan, atan, tanh...) are not correctly rounded; XLA's are
+  accurate to a few ulps, and their endpoints move outward by ``_LIBM_ULPS`` ulps.
+
+:func:`eval_jaxpr` interprets a jaxpr over intervals (constants and literals stay exact), which
+gives :func:`hessian_interval`, an enclosure of the Hessian of any ``jax.numpy`` function over a
+box, and :func:`remainder_bound`, the bound of the linearisation remainder over an ellipsoid's
+bounding box (paper eqs 11 and 20, NOTES.md §2).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jax import lax
+from jax.extend import core as jex
+from jaxtyping import Array, Float
+
+#: outward widening (in ulps) of library functions that are not correctly rounded
+_LIBM_ULPS = 4
+
+
+class Interval(eqx.Module):
+    """The box {x : lo <= x <= hi} (element-wise). Boolean intervals (``lo``: certainly true,
+    ``hi``: possibly true) are the result of comparing intervals."""
+
+    lo: Array
+    hi: Array
+
+    @property
+    def shape(self):
+        return self.lo.shape
+
+    @property
+    def dtype(self):
+        return self.lo.dtype
+
+    def mag(self) -> Array:
+        """max |x| over the interval."""
+        return jnp.maximum(jnp.abs(self.lo), jnp.abs(self.hi))
+
+    def __add__(self, other):
+        return add(self, other)
+
+    def __sub__(self, other):
+        return sub(self, other)
+
+    def __mul__(self, other):
+        return mul(self, other)
+
+    def __neg__(self):
+        return Interval(-self.hi, -self.lo)
+
+
+def point(x) -> Interval:
+    """The degenerate interval [x, x]."""
+    x = jnp.asarray(x)
+    return Interval(x, x)
+
+
+def lift(x) -> Interval:
+    return x if isinstance(x, Interval) else point(x)
+
+
+@jax.custom_jvp
+def _down(x):
+    """The next float below x (one ulp outward); its derivative is taken as 1."""
+    return jnp.nextafter(x, jnp.asarray(-jnp.inf, x.dtype))
+
+
+@jax.custom_jvp
+def _up(x):
+    """The next float above x (one ulp outward); its derivative is taken as 1."""
+    return jnp.nextafter(x, jnp.asarray(jnp.inf, x.dtype))
+
+
+_down.defjvp(lambda primals, tangents: (_down(*primals), tangents[0]))
+_up.defjvp(lambda primals, tangents: (_up(*primals), tangents[0]))
+
+
+def _eps(x):
+    return jnp.finfo(x.dtype).eps
+
+
+def _widen(lo, hi, roundings) -> Interval:
+    """Move the endpoints outward by ``roundings`` relative rounding errors, then one ulp."""
+    if roundings <= 1:
+        return Interval(_down(lo), _up(hi))
+    k = roundings * _eps(lo)
+    return Interval(_down(lo - k * jnp.abs(lo)), _up(hi + k * jnp.abs(hi)))
+
+
+def _both(prim, x: Interval, **params) -> Interval:
+    """Apply an order-preserving structural primitive (reshape, slice...) to both endpoints."""
+    return Interval(prim.bind(x.lo, **params), prim.bind(x.hi, **params))
+
+
+# ----------------------------------------------------------------------------- arithmetic
+
+
+def add(a, b) -> Interval:
+    a, b = lift(a), lift(b)
+    return _widen(a.lo + b.lo, a.hi + b.hi, 1)
+
+
+def sub(a, b) -> Interval:
+    a, b = lift(a), lift(b)
+    return _widen(a.lo - b.hi, a.hi - b.lo, 1)
+
+
+def mul(a, b) -> Interval:
+    a, b = lift(a), lift(b)
+    products = [a.lo * b.lo, a.lo * b.hi, a.hi * b.lo, a.hi * b.hi]
+    # 0 * inf is NaN; the product is 0 there (an unbounded factor times an exact zero)
+    products = [jnp.where(jnp.isnan(p), 0.0, p) for p in products]
+    lo = jnp.minimum(jnp.minimum(products[0], products[1]), jnp.minimum(products[2], products[3]))
+    hi = jnp.maximum(jnp.maximum(products[0], products[1]), jnp.maximum(products[2], products[3]))
+    return _widen(lo, hi, 1)
+
+
+def div(a, b) -> Interval:
+    a, b = lift(a), lift(b)
+    q = [a.lo / b.lo, a.lo / b.hi, a.hi / b.lo, a.hi / b.hi]
+    lo = jnp.minimum(jnp.minimum(q[0], q[1]), jnp.minimum(q[2], q[3]))
+    hi = jnp.maximum(jnp.maximum(q[0], q[1]), jnp.maximum(q[2], q[3]))
+    out = _widen(lo, hi, 1)
+    has_zero = (b.lo <= 0) & (b.hi >= 0)
+    inf = jnp.asarray(jnp.inf, out.dtype)
+    return Interval(jnp.where(has_zero, -inf, out.lo), jnp.where(has_zero, inf, out.hi))
+
+
+def integer_pow(x: Interval, y: int) -> Interval:
+    if y == 0:
+        return point(jnp.ones_like(x.lo))
+    if y < 0:
+        return div(point(jnp.ones_like(x.lo)), integer_pow(x, -y))
+    if y % 2:  # odd powers are increasing
+        return _widen(x.lo**y, x.hi**y, y)
+    mig = jnp.where((x.lo <= 0) & (x.hi >= 0), 0.0, jnp.minimum(jnp.abs(x.lo), jnp.abs(x.hi)))
+    return _widen(mig**y, x.mag() ** y, y)
+
+
+def _increasing(fn, x: Interval, roundings=_LIBM_ULPS) -> Interval:
+    return _widen(fn(x.lo), fn(x.hi), roundings)
+
+
+def sqrt(x: Interval) -> Interval:
+    out = _widen(jnp.sqrt(jnp.maximum(x.lo, 0.0)), jnp.sqrt(x.hi), 1)
+    return Interval(jnp.maximum(out.lo, 0.0), out.hi)
+
+
+def log(x: Interval) -> Interval:
+    return _increasing(jnp.log, Interval(jnp.maximum(x.lo, 0.0), x.hi))
+
+
+def abs_(x: Interval) -> Interval:
+    straddles = (x.lo <= 0) & (x.hi >= 0)
+    mig = jnp.where(straddles, 0.0, jnp.minimum(jnp.abs(x.lo), jnp.abs(x.hi)))
+    return Interval(mig, x.mag())
+
+
+def _clip_unit(out: Interval) -> Interval:
+    return Interval(jnp.maximum(out.lo, -1.0), jnp.minimum(out.hi, 1.0))
+
+
+def _contains_point(x: Interval, offset, period):
+    """Whether some offset + j * period (j integer) lies in x (conservatively: widened by 1e-12)."""
+    slack = 1e-12 * (1.0 + x.mag()) if x.dtype == jnp.float64 else 1e-5 * (1.0 + x.mag())
+    j = jnp.ceil((x.lo - slack - offset) / period)
+    return offset + j * period <= x.hi + slack
+
+
+def sin(x: Interval) -> Interval:
+    two_pi = 2 * math.pi
+    ends = _widen(
+        jnp.minimum(jnp.sin(x.lo), jnp.sin(x.hi)),
+        jnp.maximum(jnp.sin(x.lo), jnp.sin(x.hi)),
+        _LIBM_ULPS,
+    )
+    wide = x.hi - x.lo >= two_pi
+    hi = jnp.where(wide | _contains_point(x, math.pi / 2, two_pi), 1.0, ends.hi)
+    lo = jnp.where(wide | _contains_point(x, -math.pi / 2, two_pi), -1.0, ends.lo)
+    return _clip_unit(Interval(lo, hi))
+
+
+def cos(x: Interval) -> Interval:
+    two_pi = 2 * math.pi
+    ends = _widen(
+        jnp.minimum(jnp.cos(x.lo), jnp.cos(x.hi)),
+        jnp.maximum(jnp.cos(x.lo), jnp.cos(x.hi)),
+        _LIBM_ULPS,
+    )
+    wide = x.hi - x.lo >= two_pi
+    hi = jnp.where(wide | _contains_point(x, 0.0, two_pi), 1.0, ends.hi)
+    lo = jnp.where(wide | _contains_point(x, math.pi, two_pi), -1.0, ends.lo)
+    return _clip_unit(Interval(lo, hi))
+
+
+def tan(x: Interval) -> Interval:
+    out = _increasing(jnp.tan, x)
+    pole = (x.hi - x.lo >= math.pi) | _contains_point(x, math.pi / 2, math.pi)
+    inf = jnp.asarray(jnp.inf, out.dtype)
+    return Interval(jnp.where(pole, -inf, out.lo), jnp.where(pole, inf, out.hi))
+
+
+def atan2(y: Interval, x: Interval) -> Interval:
+    """The angle of the box y x x: attained at its corners unless the box touches the origin or
+    the branch cut (the negative x axis), where it is [-pi, pi]."""
+    corners = [jnp.arctan2(yy, xx) for yy in (y.lo, y.hi) for xx in (x.lo, x.hi)]
+    out = _widen(
+        jnp.min(jnp.stack(corners), axis=0), jnp.max(jnp.stack(corners), axis=0), _LIBM_ULPS
+    )
+    cut = (x.lo <= 0) & (y.lo <= 0) & (y.hi >= 0)
+    pi = jnp.asarray(math.pi, out.dtype)
+    return Interval(jnp.where(cut, -_up(pi), out.lo), jnp.where(cut, _up(pi), out.hi))
+
+
+def max_(a, b) -> Interval:
+    a, b = lift(a), lift(b)
+    return Interval(jnp.maximum(a.lo, b.lo), jnp.maximum(a.hi, b.hi))
+
+
+def min_(a, b) -> Interval:
+    a, b = lift(a), lift(b)
+    return Interval(jnp.minimum(a.lo, b.lo), jnp.minimum(a.hi, b.hi))
+
+
+def reduce_sum(x: Interval, axes) -> Interval:
+    terms = math.prod(x.shape[a] for a in axes)
+    return _widen(jnp.sum(x.lo, axis=axes), jnp.sum(x.hi, axis=axes), terms)
+
+
+def dot_general(a, b, **params) -> Interval:
+    """Midpoint-radius product (Rump): [ma +- ra] . [mb +- rb] is inside
+    ma.mb +- (|ma|.rb + ra.|mb| + ra.rb), exact in the radius when one factor is a point."""
+    a, b = lift(a), lift(b)
+    mid_a, rad_a = _midrad(a)
+    mid_b, rad_b = _midrad(b)
+    dot = lambda u, v: lax.dot_general(u, v, **params)
+    center = dot(mid_a, mid_b)
+    radius = dot(jnp.abs(mid_a), rad_b) + dot(rad_a, jnp.abs(mid_b) + rad_b)
+    contracted = math.prod(a.shape[i] for i in params["dimension_numbers"][0][0]) + 2
+    # rounding of the centre product and of the radius products, each <= contracted * eps * |.|
+    slack = contracted * _eps(center) * (dot(jnp.abs(mid_a), jnp.abs(mid_b)) + 2 * radius)
+    return _widen(center - radius - slack, center + radius + slack, 1)
+
+
+def _midrad(x: Interval):
+    mid = 0.5 * x.lo + 0.5 * x.hi
+    rad = _up(jnp.maximum(x.hi - mid, mid - x.lo))
+    return mid, rad
+
+
+# ----------------------------------------------------------------------------- booleans
+
+
+def _compare(a, b, name) -> Interval:
+    a, b = lift(a), lift(b)
+    if name in ("lt", "le"):
+        strict = name == "lt"
+        certain = a.hi < b.lo if strict else a.hi <= b.lo
+        possible = a.lo < b.hi if strict else a.lo <= b.hi
+        return Interval(certain, possible)
+    if name in ("gt", "ge"):
+        return _compare(b, a, "lt" if name == "gt" else "le")
+    overlap = (a.lo <= b.hi) & (b.lo <= a.hi)
+    exact = (a.lo == a.hi) & (b.lo == b.hi) & (a.lo == b.lo)
+    if name == "eq":
+        return Interval(exact, overlap)
+    return Interval(~overlap, ~exact)  # ne
+
+
+def select_n(pred, *cases) -> Interval | Array:
+    if not isinstance(pred, Interval):
+        if not any(isinstance(c, Interval) for c in cases):
+            return lax.select_n(pred, *cases)
+        cases = [lift(c) for c in cases]
+        return Interval(
+            lax.select_n(pred, *[c.lo for c in cases]), lax.select_n(pred, *[c.hi for c in cases])
+        )
+    cases = [lift(c) for c in cases]
+    first, last = pred.lo.astype(jnp.int32), pred.hi.astype(jnp.int32)
+    inf = jnp.asarray(jnp.inf, cases[0].dtype)
+    lo, hi = jnp.full(cases[0].shape, inf), jnp.full(cases[0].shape, -inf)
+    for i, c in enumerate(cases):
+        take = (first <= i) & (i <= last)
+        lo = jnp.where(take, jnp.minimum(lo, c.lo), lo)
+        hi = jnp.where(take, jnp.maximum(hi, c.hi), hi)
+    return Interval(lo, hi)
+
+
+# ----------------------------------------------------------------------------- interpreter
+
+_unary_increasing = {
+    "exp": jnp.exp,
+    "exp2": jnp.exp2,
+    "expm1": jnp.expm1,
+    "log1p": jnp.log1p,
+    "tanh": jnp.tanh,
+    "atan": jnp.arctan,
+    "asinh": jnp.arcsinh,
+    "cbrt": jnp.cbrt,
+    "logistic": jax.nn.sigmoid,
+    "erf": jax.scipy.special.erf,
+}
+
+_structural = {
+    "reshape", "broadcast_in_dim", "transpose", "squeeze", "expand_dims", "slice", "rev",
+    "dynamic_slice", "gather", "reduce_max", "reduce_min", "copy", "copy_p",
+}  # fmt: skip
+
+
+def _rule(name: str) -> Callable | None:
+    simple = {
+        "add": add, "add_any": add, "sub": sub, "mul": mul, "div": div, "sqrt": sqrt,
+        "log": log, "abs": abs_, "sin": sin, "cos": cos, "tan": tan, "atan2": atan2,
+        "max": max_, "min": min_, "select_n": select_n,
+        "neg": lambda x: -lift(x),
+        "square": lambda x: integer_pow(lift(x), 2),
+        "sign": lambda x: Interval(jnp.sign(x.lo), jnp.sign(x.hi)),
+        "rsqrt": lambda x: div(point(jnp.ones_like(x.lo)), sqrt(x)),
+        "not": lambda x: Interval(~x.hi, ~x.lo),
+        "and": lambda a, b: Interval(lift(a).lo & lift(b).lo, lift(a).hi & lift(b).hi),
+        "or": lambda a, b: Interval(lift(a).lo | lift(b).lo, lift(a).hi | lift(b).hi),
+    }  # fmt: skip
+    if name in simple:
+        return simple[name]
+    if name in ("eq", "ne", "lt", "le", "gt", "ge"):
+        return lambda a, b: _compare(a, b, name)
+    if name in _unary_increasing:
+        fn = _unary_increasing[name]
+        return lambda x: _increasing(fn, x)
+    return None
+
+
+def _apply(eqn, invals):
+    name = eqn.primitive.name
+    params = dict(eqn.params)
+    if not any(isinstance(v, Interval) for v in invals):
+        return eqn.primitive.bind(*invals, **params)
+    inner = params.get("jaxpr", params.get("call_jaxpr"))
+    if inner is not None and name in ("pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call", "remat", "checkpoint"):  # fmt: skip
+        if isinstance(inner, jex.ClosedJaxpr):
+            return eval_jaxpr(inner.jaxpr, inner.consts, *invals[: len(inner.jaxpr.invars)])
+        return eval_jaxpr(inner, [], *invals[: len(inner.invars)])
+    rule = _rule(name)
+    if rule is not None:
+        return rule(*invals)
+    if name == "integer_pow":
+        return integer_pow(invals[0], params["y"])
+    if name == "reduce_sum":
+        return reduce_sum(invals[0], params["axes"])
+    if name == "dot_general":
+        return dot_general(*invals, **params)
+    if name == "convert_element_type":
+        x = invals[0]
+        out = _both(eqn.primitive, x, **params)
+        narrowing = (
+            jnp.finfo(out.dtype).bits < jnp.finfo(x.dtype).bits
+            if jnp.issubdtype(x.dtype, jnp.floating)
+            else False
+        )
+        return _widen(out.lo, out.hi, 1) if narrowing else out
+    if name in _structural:
+        x, *rest = invals
+        if any(isinstance(r, Interval) for r in rest):
+            raise NotImplementedError(f"interval evaluation: {name} with an interval index")
+        return Interval(
+            eqn.primitive.bind(x.lo, *rest, **params), eqn.primitive.bind(x.hi, *rest, **params)
+        )
+    if name in ("concatenate", "pad", "stack", "dynamic_update_slice"):
+        xs = [lift(v) for v in invals]
+        return Interval(
+            eqn.primitive.bind(*[x.lo for x in xs], **params),
+            eqn.primitive.bind(*[x.hi for x in xs], **params),
+        )
+    if name in ("scatter-add", "scatter_add"):
+        operand, indices, updates = lift(invals[0]), invals[1], lift(invals[2])
+        if isinstance(indices, Interval):
+            raise NotImplementedError("interval evaluation: scatter-add with an interval index")
+        bind = lambda a, b: eqn.primitive.bind(a, indices, b, **params)
+        return _widen(
+            bind(operand.lo, updates.lo), bind(operand.hi, updates.hi), updates.lo.size + 1
+        )
+    if name == "split":
+        x = invals[0]
+        los, his = eqn.primitive.bind(x.lo, **params), eqn.primitive.bind(x.hi, **params)
+        return [Interval(lo, hi) for lo, hi in zip(los, his, strict=True)]
+    raise NotImplementedError(f"interval evaluation: no rule for the primitive {name!r}")
+
+
+def eval_jaxpr(jaxpr, consts, *args) -> list:
+    """Evaluate ``jaxpr`` with arguments that are arrays or :class:`Interval` s; every operation
+    touching an interval is replaced by its interval extension (outward rounded)."""
+    env = {}
+
+    def read(v):
+        return v.val if isinstance(v, jex.Literal) else env[v]
+
+    for var, val in zip(jaxpr.constvars, consts, strict=True):
+        env[var] = val
+    for var, val in zip(jaxpr.invars, args, strict=True):
+        env[var] = val
+    for eqn in jaxpr.eqns:
+        out = _apply(eqn, [read(v) for v in eqn.invars])
+        outs = out if eqn.primitive.multiple_results else [out]
+        for var, val in zip(eqn.outvars, outs, strict=True):
+            if not isinstance(var, jex.DropVar):
+                env[var] = val
+    return [read(v) for v in jaxpr.outvars]
+
+
+def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
+    """An enclosure of the Hessian d^2 fn / dx^2 (shape (m, n, n)) over every x in ``box``.
+
+    ``fn(x, *args)`` is any function written in ``jax.numpy``; ``args`` are held fixed (exact).
+    The Hessian's jaxpr is built for ``box``'s shape and evaluated over intervals.
+    """
+    example = jax.ShapeDtypeStruct(box.shape, box.dtype)
+    arg_shapes = [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
+    closed = jax.make_jaxpr(jax.hessian(fn))(example, *arg_shapes)
+    (out,) = eval_jaxpr(closed.jaxpr, closed.consts, box, *args)
+    return lift(out)
+
+
+def bounding_box(center: Float[Array, " n"], shape: Float[Array, "n n"]) -> Interval:
+    """The smallest box around E(center, shape): centre +- sqrt(diag(shape)), rounded outward."""
+    radius = _up(jnp.sqrt(jnp.diagonal(shape)))
+    return Interval(_down(center - radius), _up(center + radius))
+
+
+def remainder_bound(
+    fn: Callable, center: Float[Array, " n"], shape: Float[Array, "n n"], *args
+) -> Float[Array, " m"]:
+    """Half-widths alpha of a box holding the Lagrange remainder of ``fn`` linearised at
+    ``center``, for every x in E(center, shape) (paper eqs 11, 20; NOTES.md §2):
+
+        fn(x) - fn(c) - J(c)(x - c) = 1/2 dx^T H(xi) dx,   |dx_j| <= r_j = sqrt(P_jj),
+
+    bounded in interval arithmetic with dx_j dx_l in [-r_j r_l, r_j r_l] off the diagonal and
+    dx_j^2 in [0, r_j^2] on it; alpha_i is the magnitude of the resulting interval.
+    """
+    box = bounding_box(center, shape)
+    hess = hessian_interval(fn, box, *args)  # (m, n, n)
+    r = _up(jnp.sqrt(jnp.diagonal(shape)))
+    rr = _up(r[:, None] * r[None, :])
+    diagonal = jnp.eye(r.shape[0], dtype=bool)
+    products = Interval(jnp.where(diagonal, 0.0, -rr), rr)
+    quadratic = reduce_sum(mul(hess, Interval(products.lo[None], products.hi[None])), (1, 2))
+    half = 0.5 * quadratic.mag()  # exact but for subnormals, which _up covers
+    return jnp.where(half > 0, _up(half), 0.0)

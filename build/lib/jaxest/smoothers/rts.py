@@ -1,0 +1,62 @@
+"""Rauch-Tung-Striebel fixed-interval smoother for the result of any Gaussian filter.
+
+Backward pass k = T-2, ..., 0 with F_k linearised at the filtered mean x(k|k) (exact for linear
+models, the extended RTS smoother otherwise)::
+
+    C_k      = P(k|k) F_k^T P(k+1|k)^-1
+    x(k|T)   = x(k|k) + C_k (x(k+1|T) - x(k+1|k))
+    P(k|T)   = P(k|k) + C_k (P(k+1|T) - P(k+1|k)) C_k^T
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from jaxest.linalg import cho_solve_lower, symmetrize
+from jaxest.run import FilterResult, check_finite_status
+
+
+class SmootherResult(eqx.Module):
+    """Smoothed means x(k|T), covariances P(k|T), and status bits per step."""
+
+    mean: Float[Array, "T n"]
+    cov: Float[Array, "T n n"]
+    status: Int[Array, " T"]
+
+
+def rts_smooth(model, result: FilterResult, inputs=None) -> SmootherResult:
+    """Smooth a :class:`~jaxest.run.FilterResult` of ``model`` (``inputs`` as given to the filter)."""
+    T = result.mean.shape[0]
+    steps = jnp.arange(T - 1)
+    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+
+    def backward(carry, args):
+        mean_next, cov_next = carry
+        k, mean, cov, pred_mean_next, pred_cov_next, u = args
+        _, F, _, _ = model.transition(mean, u, k)
+        chol = jnp.linalg.cholesky(pred_cov_next)
+        gain = cho_solve_lower(chol, F @ cov).T
+        mean_s = mean + gain @ (mean_next - pred_mean_next)
+        cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)
+        status = check_finite_status(mean_s, cov_s)
+        return (mean_s, cov_s), (mean_s, cov_s, status)
+
+    last = (result.mean[-1], result.cov[-1])
+    args = (
+        steps,
+        result.mean[:-1],
+        result.cov[:-1],
+        result.predicted_mean[1:],
+        result.predicted_cov[1:],
+        u_seq,
+    )
+    _, (means, covs, status) = jax.lax.scan(backward, last, args, reverse=True)
+    last_status = check_finite_status(last[1])
+    return SmootherResult(
+        jnp.concatenate([means, last[0][None]]),
+        jnp.concatenate([covs, last[1][None]]),
+        jnp.concatenate([status, last_status[None]]) | result.status,
+    )

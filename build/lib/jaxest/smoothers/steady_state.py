@@ -1,0 +1,246 @@
+"""Steady-state Kalman machinery of the fixed-interval Wiener smoother paper (Sun & Cui, 2003, §2).
+
+For the time-invariant model x(t+1) = Phi x(t) + Gamma w(t), y(t) = H x(t) + v(t):
+
+- :func:`steady_state_gain` (lemma 1, eqs 4-5): Sigma, the steady-state one-step prediction
+  covariance, K = Sigma H^T (H Sigma H^T + R)^-1 and Psi_f = (I - K H) Phi;
+- :class:`SteadyStateKalmanFilter` (eq 3): x(t+1|t+1) = Psi_f x(t|t) + K y(t+1), an estimator of
+  the usual ``init``/``step`` protocol, so ``jaxest.filter`` and ``jaxest.run`` drive it;
+- :func:`arma_innovation_model` (lemma 2, eqs 6-7): A(q^-1) y(t) = Psi(q^-1) eps(t) with
+  Psi(q^-1) = det(I - Psi_f q^-1) and A(q^-1) = Psi(q^-1) I - H Phi adj(I - Psi_f q^-1) K q^-1;
+- :func:`fixed_point_smooth` (lemma 3, eqs 8-9): x(t|t+i) = x(t|t+i-1) + K_i eps(t+i),
+  K_i = Sigma [(I - K H)^T Phi^T]^i H^T (H Sigma H^T + R)^-1;
+- :func:`steady_state_smooth` (eq 15): x(t|N) = x(t|t) + sum_{i=1}^{N-t} K_i eps(t+i) for every t,
+  the sum evaluated by one backward recursion, so the cost is linear in N.
+
+Time convention (the library's): the prior mean is x(0|-1), the first update uses y(0), so
+x(0|0) = x(0|-1) + K (y(0) - H x(0|-1)); measurements y(0), ..., y(N) (N + 1 samples).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from jaxest.checks import check_prior
+from jaxest.filters.common import StepOutput, gaussian_loglik, pack_result
+from jaxest.linalg import symmetrize
+from jaxest.models import LinearGaussian
+from jaxest.riccati import solve_dare
+from jaxest.run import Gaussian, check_finite_status, run
+
+
+class SteadyStateGain(eqx.Module):
+    """Lemma 1: the steady state of the Kalman filter of a time-invariant linear model."""
+
+    Phi: Float[Array, "n n"]
+    H: Float[Array, "m n"]
+    Sigma: Float[Array, "n n"]  #: steady-state prediction covariance P(t|t-1), eq 5
+    K: Float[Array, "n m"]  #: filter gain, eq 4
+    innovation_cov: Float[Array, "m m"]  #: Q_eps = H Sigma H^T + R
+
+    @property
+    def Psi_f(self) -> Float[Array, "n n"]:
+        """Psi_f = (I - K H) Phi, the (stable) filter transition matrix of eq 3."""
+        return (jnp.eye(self.Phi.shape[0], dtype=self.Phi.dtype) - self.K @ self.H) @ self.Phi
+
+    @property
+    def smoother_transition(self) -> Float[Array, "n n"]:
+        """(I - K H)^T Phi^T, whose powers make the fixed-point gains of eq 9."""
+        eye = jnp.eye(self.Phi.shape[0], dtype=self.Phi.dtype)
+        return (eye - self.K @ self.H).T @ self.Phi.T
+
+    @property
+    def innovation_gain(self) -> Float[Array, "n m"]:
+        """H^T Q_eps^-1, the last factor of eq 9."""
+        return jnp.linalg.solve(self.innovation_cov, self.H).T
+
+    @property
+    def filtered_cov(self) -> Float[Array, "n n"]:
+        """P(t|t) = Sigma - K Q_eps K^T."""
+        return symmetrize(self.Sigma - self.K @ self.innovation_cov @ self.K.T)
+
+
+def check_time_invariant(model) -> None:
+    """The steady-state theory needs a time-invariant :class:`~jaxest.LinearGaussian` model
+    without inputs; raise ``ValueError`` naming the offending part otherwise."""
+    if not isinstance(model, LinearGaussian):
+        raise ValueError(f"model: expected jaxest.LinearGaussian, got {type(model).__name__}")
+    for name in ("B", "D"):
+        if getattr(model, name) is not None:
+            raise ValueError(f"model.{name}: the steady-state smoothers take no inputs")
+    for name in ("F", "H", "Q", "R", "G"):
+        value = getattr(model, name)
+        if value is not None and jnp.ndim(value) != 2:
+            raise ValueError(
+                f"model.{name}: must be time-invariant (a matrix), got shape {jnp.shape(value)}"
+            )
+
+
+def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
+    """Sigma from the filter Riccati equation (eq 5), solved as the control-form DARE
+    ``solve_dare(Phi^T, H^T, Gamma Q Gamma^T, R)``, then K (eq 4) and Q_eps."""
+    check_time_invariant(model)
+    Phi, H, R = model.F, model.H, model.R
+    G = model.noise_gain(0)
+    Sigma = solve_dare(Phi.T, H.T, symmetrize(G @ model.Q @ G.T), R)
+    Qe = symmetrize(H @ Sigma @ H.T + R)
+    K = jnp.linalg.solve(Qe, H @ Sigma).T
+    return SteadyStateGain(Phi, H, Sigma, K, Qe)
+
+
+class SteadyState(eqx.Module):
+    """x(t|t-1), the gain and the Cholesky factor of the innovation covariance (both constant,
+    computed once in ``init``)."""
+
+    mean: Float[Array, " n"]
+    gain: SteadyStateGain
+    innovation_chol: Float[Array, "m m"]
+
+
+class SteadyStateKalmanFilter(eqx.Module):
+    """Lemma 1 / eq 3: the Kalman filter with its steady-state gain, x(t|t) = x(t|t-1) +
+    K (y(t) - H x(t|t-1)), x(t+1|t) = Phi x(t|t), i.e. x(t+1|t+1) = Psi_f x(t|t) + K y(t+1).
+
+    Only the prior's mean is used (x(0|-1)): the steady state presumes the filter started at
+    t0 -> -infinity, so the reported covariances are the constant Sigma and P(t|t). No missing
+    (NaN) measurements. ``gain`` is :func:`steady_state_gain` of the model (computed in ``init``
+    when not given).
+    """
+
+    gain: SteadyStateGain | None = None
+
+    def init(self, model, prior: Gaussian) -> SteadyState:
+        prior = check_prior(prior)
+        gain = steady_state_gain(model) if self.gain is None else self.gain
+        return SteadyState(prior.mean, gain, jnp.linalg.cholesky(gain.innovation_cov))
+
+    def step(self, model, state: SteadyState, y, u):
+        g = state.gain
+        e = y - g.H @ state.mean
+        x_post = state.mean + g.K @ e
+        S_chol = state.innovation_chol
+        z = jax.scipy.linalg.solve_triangular(S_chol, e, lower=True)
+        loglik = gaussian_loglik(z, S_chol, e.shape[0])
+        x_next = g.Phi @ x_post
+        status = check_finite_status(x_next, loglik)
+        out = StepOutput(
+            state.mean, g.Sigma, x_post, g.filtered_cov, e, g.innovation_cov, loglik, status
+        )
+        return SteadyState(x_next, g, S_chol), out
+
+    result = staticmethod(pack_result)
+
+
+class ArmaInnovationModel(eqx.Module):
+    """Lemma 2, eqs 6-7: A(q^-1) y(t) = Psi(q^-1) I_m eps(t), with the polynomial coefficients
+    stored by increasing power of q^-1 (``ar[0] = I``, ``ma[0] = 1``)."""
+
+    ar: Float[Array, "n+1 m m"]  #: A_0, ..., A_n
+    ma: Float[Array, " n+1"]  #: psi_0, ..., psi_n of Psi(q^-1) = det(I - Psi_f q^-1)
+    adj: Float[Array, "n n n"]  #: adj(I - Psi_f q^-1) = sum_j adj[j] q^-j
+
+
+def characteristic_polynomial(M: Float[Array, "n n"]):
+    """det(I - M z) = sum_j c_j z^j and adj(I - M z) = sum_j B_j z^j by the Faddeev-LeVerrier
+    recursion B_0 = I, c_j = -tr(M B_{j-1}) / j, B_j = M B_{j-1} + c_j I (exact in exact
+    arithmetic and differentiable; meant for the small n of state-space models)."""
+    n = M.shape[0]
+    eye = jnp.eye(n, dtype=M.dtype)
+    coeffs, adj = [jnp.ones((), M.dtype)], [eye]
+    for j in range(1, n + 1):
+        MB = M @ adj[-1]
+        c = -jnp.trace(MB) / j
+        coeffs.append(c)
+        if j < n:
+            adj.append(MB + c * eye)
+    return jnp.stack(coeffs), jnp.stack(adj)
+
+
+def arma_innovation_model(gain: SteadyStateGain) -> ArmaInnovationModel:
+    """Eq 7: Psi = det(I - Psi_f q^-1), D = Psi I_m, A = D - H Phi adj(I - Psi_f q^-1) K q^-1."""
+    psi, adj = characteristic_polynomial(gain.Psi_f)
+    m = gain.H.shape[0]
+    eye = jnp.eye(m, dtype=psi.dtype)
+    lagged = jnp.einsum("ij,ajk,kl->ail", gain.H @ gain.Phi, adj, gain.K)  # H Phi B_j K
+    ar = psi[:, None, None] * eye - jnp.concatenate([jnp.zeros((1, m, m), psi.dtype), lagged])
+    return ArmaInnovationModel(ar, psi, adj)
+
+
+def fixed_point_gains(gain: SteadyStateGain, count: int) -> Float[Array, "count n m"]:
+    """K_1, ..., K_count of eq 9, K_i = Sigma [(I - K H)^T Phi^T]^i H^T Q_eps^-1."""
+
+    def body(P, _):
+        P = gain.smoother_transition @ P
+        return P, gain.Sigma @ P
+
+    _, gains = jax.lax.scan(body, gain.innovation_gain, None, length=count)
+    return gains
+
+
+def fixed_point_smooth(
+    gain: SteadyStateGain, filtered_mean: Float[Array, " n"], later_innovations: Float[Array, "L m"]
+) -> Float[Array, "L+1 n"]:
+    """Lemma 3, eq 8: x(t|t+i) = x(t|t+i-1) + K_i eps(t+i) for i = 1..L from x(t|t), given the
+    innovations eps(t+1), ..., eps(t+L); returns x(t|t), x(t|t+1), ..., x(t|t+L)."""
+    K = fixed_point_gains(gain, later_innovations.shape[0])
+    increments = jnp.einsum("inm,im->in", K, later_innovations)
+    path = filtered_mean + jnp.cumsum(increments, axis=0)
+    return jnp.concatenate([filtered_mean[None], path])
+
+
+def backward_gain_sum(
+    gain: SteadyStateGain, signal: Float[Array, "T m"], terminal: Float[Array, " n"] | None = None
+) -> Float[Array, "T n"]:
+    """Sigma S(t) with S(t) = sum_{i=1}^{T-1-t} [(I - K H)^T Phi^T]^i H^T Q_eps^-1 signal(t+i)
+    + [(I - K H)^T Phi^T]^{T-1-t} terminal, i.e. sum_i K_i signal(t+i) (eqs 12 and 15) plus a
+    decaying end term, by the backward recursion S(T-1) = terminal (default 0),
+    S(t) = (I - K H)^T Phi^T (H^T Q_eps^-1 signal(t+1) + S(t+1)): O(T) work and memory."""
+    M, Hq = gain.smoother_transition, gain.innovation_gain
+
+    def body(S_next, s_next):
+        S = M @ (Hq @ s_next + S_next)
+        return S, S
+
+    end = jnp.zeros(gain.Phi.shape[:1], signal.dtype) if terminal is None else terminal
+    _, S = jax.lax.scan(body, end, signal[1:], reverse=True)
+    return jnp.concatenate([S, end[None]]) @ gain.Sigma.T
+
+
+class SteadyStateSmootherResult(eqx.Module):
+    """x(t|N), x(t|t) and eps(t) for t = 0..N (eq 15)."""
+
+    mean: Float[Array, "T n"]
+    filtered_mean: Float[Array, "T n"]
+    innovation: Float[Array, "T m"]
+
+
+def steady_state_smooth(
+    model: LinearGaussian,
+    ys: Float[Array, "T m"],
+    prior: Gaussian,
+    gain: SteadyStateGain | None = None,
+) -> SteadyStateSmootherResult:
+    """The non-recursive steady-state fixed-interval smoother, eq 15: the steady-state filter
+    (eq 3) forward, then x(t|N) = x(t|t) + sum_{i=1}^{N-t} K_i eps(t+i) by one backward pass.
+    ``gain`` is :func:`steady_state_gain` of the model (solved here when not given)."""
+    gain = steady_state_gain(model) if gain is None else gain
+    filtered = run(SteadyStateKalmanFilter(gain), model, ys, None, prior)
+    mean = filtered.mean + backward_gain_sum(gain, filtered.innovation)
+    return SteadyStateSmootherResult(mean, filtered.mean, filtered.innovation)
+
+
+__all__ = [
+    "ArmaInnovationModel",
+    "SteadyStateGain",
+    "SteadyStateKalmanFilter",
+    "SteadyStateSmootherResult",
+    "arma_innovation_model",
+    "characteristic_polynomial",
+    "fixed_point_gains",
+    "fixed_point_smooth",
+    "steady_state_gain",
+    "steady_state_smooth",
+]

@@ -1,0 +1,210 @@
+"""The fixed-interval Wiener smoother in ARMA form (Sun & Cui, 2003, theorem, eqs 10-13).
+
+Given y(0), ..., y(N), the smoother obeys the ARMA recursion (eq 10)
+
+    Psi(q^-1) x(t|N) = adj(I - q^-1 Psi_f) K y(t) + sum_{i=1}^{N-t} K_i A(q^-1) y(t+i) + e_N(t)
+
+(eqs 11-12 with K_i of eq 9), run forward for t = n..N from n initial values
+x(0|N), ..., x(n-1|N) (n = deg Psi = the state dimension; a singular Psi_f just gives trailing
+zero coefficients). The sum is the backward recursion of
+:func:`~jaxest.smoothers.steady_state.backward_gain_sum` applied to A(q^-1) y, so the whole
+smoother costs O(N n^2) time and O(N n) memory.
+
+The end term e_N(t) is not in the paper. Its proof (eq 16) moves Psi(q^-1) through
+L_{N,t}(q^-1), whose number of terms N - t changes with t; doing the shift exactly leaves
+
+    e_N(t) = Sigma M^{N-t} v_N,  v_N = sum_{r=0}^{n-1} sum_{j=r+1}^{n} psi_j M^{j-r} H^T Q_eps^-1 eps(N-r)
+
+with M = (I - K H)^T Phi^T, which needs the last n innovations. It decays like |lambda_max|^{N-t}:
+negligible far from the end, of the size of the signal near it. :meth:`WienerSmoother.smooth`
+adds it when given ``final_innovations`` (then eq 10 reproduces eq 15 exactly) and otherwise runs
+the theorem as printed. It enters as the terminal value of the backward recursion.
+
+With the optimal initial values (the steady-state smoother of eq 15 at t < n) the smoother equals
+eq 15; any other start adds delta(t) with Psi(q^-1) delta(t) = 0 (eq 17), a mix of lambda_i^t over
+the eigenvalues of Psi_f (eq 19). :meth:`WienerSmoother.eq13_initial_values` picks the last k
+initial values so that the k eigenvalues near the unit circle drop out of delta (eq 13).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from jaxest.models import LinearGaussian
+from jaxest.run import Gaussian
+from jaxest.smoothers.steady_state import (
+    ArmaInnovationModel,
+    SteadyStateGain,
+    SteadyStateSmootherResult,
+    arma_innovation_model,
+    backward_gain_sum,
+    steady_state_gain,
+    steady_state_smooth,
+)
+
+
+def lagged_sum(
+    coeffs: Float[Array, "d a b"], signal: Float[Array, "T b"]
+) -> Float[Array, "T-d+1 a"]:
+    """sum_{j=0}^{d-1} coeffs[j] signal(t - j) for t = d-1, ..., T-1 (a matrix polynomial in q^-1
+    applied where all its lags exist)."""
+    d, T = coeffs.shape[0], signal.shape[0]
+    return sum(signal[d - 1 - j : T - j] @ coeffs[j].T for j in range(d))
+
+
+class WienerSmoother(eqx.Module):
+    """The fixed-interval Wiener smoother of a time-invariant linear model (build it with
+    :meth:`from_model`; it is a pytree, so it ``vmap``s and differentiates)."""
+
+    model: LinearGaussian
+    gain: SteadyStateGain
+    arma: ArmaInnovationModel
+
+    @classmethod
+    def from_model(cls, model: LinearGaussian) -> WienerSmoother:
+        """Lemmas 1-2: the steady-state gain and the ARMA innovation model of ``model``."""
+        gain = steady_state_gain(model)
+        return cls(model, gain, arma_innovation_model(gain))
+
+    @property
+    def order(self) -> int:
+        """n_d = n, the number of initial values the recursion needs."""
+        return self.arma.ma.shape[0] - 1
+
+    def eigenvalues(self) -> Array:
+        """The eigenvalues lambda_i of Psi_f (the roots of z^n Psi(1/z)), by decreasing modulus."""
+        lam = jnp.linalg.eigvals(self.gain.Psi_f)
+        return lam[jnp.argsort(-jnp.abs(lam))]
+
+    def end_term(self, final_innovations: Float[Array, "n m"]) -> Float[Array, " n"]:
+        """v_N of the module docstring from eps(N-n+1), ..., eps(N) (oldest first)."""
+        n, psi = self.order, self.arma.ma
+        M, Hq = self.gain.smoother_transition, self.gain.innovation_gain
+        powers = [M @ Hq]  # M^p H^T Q_eps^-1, p = 1..n
+        for _ in range(n - 1):
+            powers.append(M @ powers[-1])
+        v = jnp.zeros(n, final_innovations.dtype)
+        for r in range(n):
+            coeff = sum(psi[p + r] * powers[p - 1] for p in range(1, n - r + 1))
+            v = v + coeff @ final_innovations[n - 1 - r]
+        return v
+
+    @eqx.filter_jit
+    def smooth(
+        self,
+        ys: Float[Array, "T m"],
+        initial_values: Float[Array, "n n"],
+        final_innovations: Float[Array, "n m"] | None = None,
+    ) -> Float[Array, "T n"]:
+        """Eq 10: x(t|N) for t = 0..N (T = N + 1 samples), started from
+        ``initial_values`` = x(0|N), ..., x(n-1|N). With ``final_innovations`` (the steady-state
+        filter's eps(N-n+1..N), see :meth:`final_innovations`) the end term is included and the
+        result is exact; without it, it is the theorem as printed."""
+        n, psi = self.order, self.arma.ma
+        if ys.shape[0] <= n + 1:
+            raise ValueError(f"ys: need more than {n + 1} samples, got {ys.shape[0]}")
+        filtered_part = lagged_sum(jnp.einsum("jab,bm->jam", self.arma.adj, self.gain.K), ys)[1:]
+        arma_output = lagged_sum(self.arma.ar, ys)  # A(q^-1) y(s), s = n..N
+        end = None if final_innovations is None else self.end_term(final_innovations)
+        forcing = filtered_part + backward_gain_sum(self.gain, arma_output, end)  # eqs 11-12
+
+        def body(past, b):  # past[j] = x(t-1-j|N)
+            x = b - psi[1:] @ past
+            return jnp.concatenate([x[None], past[:-1]]), x
+
+        _, xs = jax.lax.scan(body, initial_values[::-1], forcing)
+        return jnp.concatenate([initial_values, xs])
+
+    @eqx.filter_jit
+    def optimal_start(
+        self, ys: Float[Array, "T m"], prior_mean: Float[Array, " n"]
+    ) -> tuple[Float[Array, "n n"], Float[Array, "n m"]]:
+        """The optimal initial values x^o(0|N), ..., x^o(n-1|N) (eqs 8-9 / 15) and the final
+        innovations eps(N-n+1), ..., eps(N) of the end term, from one pass of the steady-state
+        smoother with the filter started at x(0|-1) = ``prior_mean``."""
+        prior = Gaussian(prior_mean, self.gain.Sigma)
+        return self.start_from(steady_state_smooth(self.model, ys, prior, self.gain))
+
+    def start_from(
+        self, steady: SteadyStateSmootherResult
+    ) -> tuple[Float[Array, "n n"], Float[Array, "n m"]]:
+        """:meth:`optimal_start` read off a steady-state smoother result already at hand."""
+        return steady.mean[: self.order], steady.innovation[-self.order :]
+
+    @eqx.filter_jit
+    def eq13_initial_values(
+        self, arbitrary: Float[Array, "n n"], optimal: Float[Array, "n n"], radius: float = 0.5
+    ) -> Float[Array, "n n"]:
+        """Eq 13: keep the first n - k of the ``arbitrary`` initial values and set the last k so
+        that the k eigenvalues of Psi_f with |lambda| > ``radius`` (near the unit circle) vanish
+        from delta(t) = x(t|N) - x^o(t|N).
+
+        delta then has to lie in the span of lambda_i^t over the n - k far eigenvalues, i.e.
+        solve Psi_far(q^-1) delta(t) = 0 with Psi_far(z) = prod_far (1 - lambda_i z); the last k
+        initial deltas are that recursion continued from the first n - k. For distinct real
+        eigenvalues this is the Vandermonde solution of eqs 21-23; it equally covers repeated
+        far eigenvalues (then t lambda^t terms stay, as they must) and complex pairs (a pair is
+        near or far together, so Psi_far is real). All traced: ``radius`` may change under jit.
+        """
+        n = self.order
+        lam = jnp.linalg.eigvals(self.gain.Psi_f)
+        far = jnp.abs(lam) <= radius
+        psi_far = jnp.ones((1,), lam.dtype)
+        for root in jnp.where(far, lam, 0.0):  # near roots contribute the factor 1
+            psi_far = jnp.convolve(psi_far, jnp.stack([jnp.ones_like(root), -root]))
+        psi_far = psi_far.real.astype(arbitrary.dtype)
+        free = jnp.sum(far)  # n - k
+        deltas = []
+        for t in range(n):
+            continued = -sum(
+                (psi_far[l] * deltas[t - l] for l in range(1, t + 1)), jnp.zeros(n, arbitrary.dtype)
+            )
+            deltas.append(jnp.where(t < free, arbitrary[t] - optimal[t], continued))
+        return optimal + jnp.stack(deltas)
+
+
+def wiener_smooth(
+    model: LinearGaussian,
+    ys: Float[Array, "T m"],
+    prior_mean: Float[Array, " n"] | None = None,
+    initial_values: Float[Array, "n n"] | None = None,
+    *,
+    start: str = "optimal",
+    radius: float = 0.5,
+    end_term: bool = True,
+) -> Float[Array, "T n"]:
+    """x(t|N), t = 0..N, by the fixed-interval Wiener smoother (eq 10), started
+
+    - ``start="arbitrary"``: from ``initial_values`` as given;
+    - ``start="optimal"``: from the optimal values (eq 15 with the filter started at
+      x(0|-1) = ``prior_mean``), so it equals the steady-state smoother;
+    - ``start="eq13"``: from ``initial_values`` with the last k replaced by eq 13.
+
+    ``end_term=False`` runs the theorem as printed (see the module docstring). Everything but
+    ``start="arbitrary", end_term=False`` needs ``prior_mean`` (one steady-state smoother pass).
+    """
+    if start not in ("arbitrary", "optimal", "eq13"):
+        raise ValueError(f"start: expected 'arbitrary', 'optimal' or 'eq13', got {start!r}")
+    smoother = WienerSmoother.from_model(model)
+    n, m = smoother.order, model.H.shape[0]
+    if jnp.ndim(ys) != 2 or jnp.shape(ys)[1] != m:
+        raise ValueError(f"ys: expected shape (T, {m}), got {jnp.shape(ys)}")
+    if start != "optimal" and (initial_values is None or jnp.shape(initial_values) != (n, n)):
+        raise ValueError(
+            f"initial_values: start={start!r} needs an ({n}, {n}) array x(0|N)..x({n - 1}|N)"
+        )
+    if start == "arbitrary" and not end_term:
+        return smoother.smooth(ys, initial_values)
+    if prior_mean is None or jnp.shape(prior_mean) != (n,):
+        raise ValueError(f"prior_mean: needs the prior mean x(0|-1), shape ({n},)")
+    optimal, final_innovations = smoother.optimal_start(ys, prior_mean)
+    x0 = {"arbitrary": initial_values, "optimal": optimal}.get(start)
+    if start == "eq13":
+        x0 = smoother.eq13_initial_values(initial_values, optimal, radius)
+    return smoother.smooth(ys, x0, final_innovations if end_term else None)
+
+
+__all__ = ["WienerSmoother", "lagged_sum", "wiener_smooth"]

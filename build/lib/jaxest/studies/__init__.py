@@ -1,0 +1,28 @@
+"""The papers' studies, one module each, run by ``python -m jaxest reproduce NAME``.
+
+Each module defines ``DESCRIPTION`` (one line) and
+``run(out: pathlib.Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict``,
+which writes its figures (PNG) and tables (Markdown + JSON) under ``out / NAME`` and returns the
+summary it wrote. ``runs=None`` means the study's default number of Monte Carlo runs.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+#: study name -> module (imported only when the study runs)
+STUDIES: dict[str, str] = {
+    "filters": "jaxest.studies.filters",
+    "svd-ekf": "jaxest.studies.svd_ekf",
+    "wiener": "jaxest.studies.wiener",
+    "smf-fdi": "jaxest.studies.smf_fdi",
+    "network": "jaxest.studies.network",
+    "adaptive": "jaxest.studies.adaptive",
+}
+
+
+def load(name: str):
+    """The module of study ``name``."""
+    if name not in STUDIES:
+        raise ValueError(f"study: unknown study {name!r}; choose from {', '.join(STUDIES)}")
+    return importlib.import_module(STUDIES[name])

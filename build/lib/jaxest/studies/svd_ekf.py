@@ -1,0 +1,627 @@
+"""Study ``svd-ekf``: flight state and sensor-parameter estimation with the SVD-based EKF
+(Zhang, Dai & Zhang), on simulated maneuvers and on real ATTAS / HFB-320 flight data.
+
+1. Monte Carlo on the simulator (:mod:`jaxest.systems.flight_sim`): for every maneuver (elevator
+   3-2-1-1, aileron bank-to-bank, rudder doublet), sample rate (10 and 32 Hz) and dtype (float64,
+   float32), ``runs`` flights with their own true sensor parameters (drawn from the prior), sensor
+   noise and initial estimate, filtered by the paper's EKF, its SVD-EKF and the improved SVD filter
+   (Kulikova & Tsyganova), all ``vmap``ped. Reported: state RMSE, parameter error, diverged runs,
+   NEES, and which parameters each maneuver makes observable.
+2. Real data (:mod:`jaxest.systems.flight_data`): the same reconstruction of the ATTAS elevator,
+   aileron and rudder maneuvers and of the HFB-320 record, with biases, scale factors and residuals,
+   after estimating the flow vanes' delay behind the inertial sensors by maximum likelihood (a
+   likelihood profile over whole-sample delays, :func:`estimate_delays`).
+3. Maximum-likelihood tuning of the noise levels by L-BFGS on the SVD filter's log-likelihood
+   (:func:`tune_noise`): input (Q) and measurement (R) noise on simulated data, Q only on the real
+   data, where a free R collapses towards zero for alpha and beta (see the notebook).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF
+from jaxest.plot import plt, save
+from jaxest.progress import Progress
+from jaxest.report import markdown_table, write_json
+from jaxest.run import Gaussian, Status
+from jaxest.run import run as run_filter
+from jaxest.systems import flight, flight_data
+from jaxest.systems import flight_sim as sim
+from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
+from jaxest.tune import fit
+
+NAME = "svd-ekf"
+DESCRIPTION = "SVD-EKF flight state & sensor-parameter estimation (simulated + ATTAS/HFB-320 data)"
+
+FILTERS = {"ekf": EKF(), "svd_ekf": SVDEKF(), "svd_improved": ImprovedSVDKF()}
+DEG = np.pi / 180.0
+#: prior std of the kinematic states: u, v, w (m/s), phi, theta, psi (rad), h (m)
+KINEMATIC_STD = np.array([1.0, 1.0, 1.0, 0.5 * DEG, 0.5 * DEG, 2.0 * DEG, 10.0])
+#: a run diverged if its status flags anything or its mean NEES exceeds this (dimension 23)
+NEES_DIVERGED = 1000.0
+#: seconds of initial convergence left out of the state RMSE
+SETTLE_S = 1.0
+#: a parameter counts as observable in a maneuver when its posterior std falls below this
+#: fraction of its prior std
+OBSERVABLE_RATIO = 0.5
+#: units in which the tables and JSON report each state / parameter / output
+STATE_UNITS = {"u": 1, "v": 1, "w": 1, "phi": 1 / DEG, "theta": 1 / DEG, "psi": 1 / DEG, "h": 1}
+PARAMETER_UNITS = np.array([1, 1, 1, 1 / DEG, 1 / DEG, 1 / DEG, 1, 1 / DEG, 1 / DEG, 1 / DEG,
+                            1 / DEG, 1, 1, 1, 1, 1])  # fmt: skip
+OUTPUT_UNITS = np.array([1, 1 / DEG, 1 / DEG, 1 / DEG, 1 / DEG, 1])
+#: HFB-320 noise levels of ../shared/data/README.md in output units (V m/s, angles deg)
+HFB320_NOISE = {"V": 0.13, "alpha": 0.057, "theta": 0.025}
+#: why the sensor parameters estimated on different maneuvers need not agree within their
+#: standard deviations (the summary lists those that do)
+BIAS_AGREEMENT_NOTE = (
+    "On the ATTAS records each maneuver's parameters are compared with the filter's formal standard "
+    "deviations, which assume an exact model and white noise. What does not agree: (1) parameters "
+    "that one maneuver fixes only along a nearly collinear direction: bias and scale factor of a "
+    "channel that barely moves (b_V/lam_V, b_h/lam_h, b_alpha/lam_alpha), b_phi with b_ay while the "
+    "bank angle stays near zero (the elevator maneuver puts b_phi degrees off), b_theta with b_ax "
+    "and b_V through gravity; small model errors move them far along that direction. (2) b_p is "
+    "resolved to about 0.003 deg/s and differs between records by up to 0.02 deg/s, a normal "
+    "change of gyro bias between separate flights or power cycles: the model's constant bias holds "
+    "within a record, not across records. (3) The pressure-altitude error depends on the flight "
+    "condition, not only on a bias and a scale factor. (4) In the aileron record the phi innovation "
+    "follows the bank angle (about 1.7 % of phi, up to 0.9 deg), an error no parameter of eq 28 "
+    "describes (roll-gyro scale factor or attitude-reference error); it pulls b_p, b_r and b_phi. "
+    "The tuned input noise (a_x, a_z far above accelerometer noise) shows unmodelled air-relative "
+    "motion too, but earth-axis wind states (random walks) made only the flow-angle parameters "
+    "agree, by widening their sigmas. Even with an exact model the simulated NEES (above 23) shows "
+    "the formal sigmas somewhat too small."
+)
+
+
+def prior_cov(dtype):
+    std = np.concatenate([KINEMATIC_STD, sim.PARAMETER_STD])
+    return jnp.asarray(np.diag(std**2), dtype)
+
+
+def simulated_batch(truth: sim.TrueFlight, runs: int, key, dtype, noise_scale: float = 1.0):
+    """``runs`` corrupted copies of ``truth``: (ys, interval inputs, priors, true states), each
+    with a leading run axis; all in ``dtype``."""
+
+    def one(k):
+        k_par, k_noise, k_init = jax.random.split(k, 3)
+        params = sim.draw_parameters(k_par, truth.states.dtype)
+        record = sim.corrupt(
+            truth, params, k_noise, sim.INPUT_STD * noise_scale, sim.OUTPUT_STD * noise_scale
+        )
+        mean0 = sim.initial_guess(record.true_states[0], k_init, KINEMATIC_STD)
+        inputs = flight.interval_inputs(record.measured_inputs)
+        cast = lambda a: a.astype(dtype)
+        return cast(record.measurements), cast(inputs), cast(mean0), cast(record.true_states)
+
+    return jax.jit(jax.vmap(one))(jax.random.split(key, runs))
+
+
+def model_for(rate_hz, dtype, noise_scale=1.0, lever_arms=sim.LEVER_ARMS, output_std=None):
+    output_std = sim.OUTPUT_STD if output_std is None else output_std
+    return flight.flight_model(
+        1.0 / rate_hz,
+        jnp.asarray(sim.INPUT_STD * noise_scale, dtype),
+        jnp.asarray(output_std * noise_scale, dtype),
+        lever_arms,
+    )
+
+
+def run_metrics(estimator, model, ys, inputs, mean0, P0, truth, settle: int):
+    """Per-run summary of one filter run: squared state errors averaged over time after ``settle``
+    steps, final parameter errors and standard deviations, mean NEES, status."""
+    result = run_filter(estimator, model, ys, inputs, Gaussian(mean0, P0))
+    err = (result.mean - truth).astype(jnp.float64)
+    cov = result.cov.astype(jnp.float64)
+    nees = jax.vmap(lambda e, P: e @ jnp.linalg.solve(P, e))(err, cov)
+    status = jnp.bitwise_or.reduce(result.status)
+    return {
+        "sq_err": jnp.mean(err[settle:, :N_KIN] ** 2, axis=0),
+        "param_err": err[-1, N_KIN:],
+        "final_std": jnp.sqrt(jnp.diagonal(cov[-1])),
+        "nees": jnp.mean(nees),
+        "status": status,
+    }
+
+
+def monte_carlo(estimator, model, batch, P0, settle, chunk):
+    """:func:`run_metrics` over the runs of ``batch``, ``vmap``ped in chunks of ``chunk`` runs."""
+    return jax.tree.map(np.asarray, _monte_carlo(estimator, model, batch, P0, settle, chunk))
+
+
+@eqx.filter_jit
+def _monte_carlo(estimator, model, batch, P0, settle, chunk):
+    ys, inputs, mean0, truth = batch
+    f = lambda a: run_metrics(estimator, model, a[0], a[1], a[2], P0, a[3], settle)
+    return jax.lax.map(f, (ys, inputs, mean0, truth), batch_size=chunk)
+
+
+def diverged(metrics):
+    """Runs that flagged a status bit, produced NaN or whose NEES exceeds ``NEES_DIVERGED``."""
+    nees = metrics["nees"]
+    return (metrics["status"] != Status.OK) | ~np.isfinite(nees) | (nees > NEES_DIVERGED)
+
+
+def summarise(metrics, common):
+    """The per-filter F block of summary.json; RMSE, parameter error and NEES over ``common``, the
+    runs no filter lost (so the filters are compared on the same flights)."""
+    bad = diverged(metrics)
+    lost_pd = (metrics["status"] & Status.NOT_POSITIVE_DEFINITE) != 0
+    use = common if np.any(common) else ~bad
+    rms = lambda a: (
+        np.sqrt(np.mean(a[use], axis=0)) if np.any(use) else np.full(a.shape[1:], np.nan)
+    )
+    sq = rms(metrics["sq_err"])
+    perr = rms(metrics["param_err"] ** 2) * PARAMETER_UNITS
+    return {
+        "rmse": {s: float(sq[i] * STATE_UNITS[s]) for i, s in enumerate(KINEMATIC_STATES)},
+        "param_error": {p: float(perr[i]) for i, p in enumerate(PARAMETERS)},
+        "diverged_runs": int(np.sum(bad)),
+        "lost_definiteness_runs": int(np.sum(lost_pd)),
+        "runs": int(bad.shape[0]),
+        "compared_runs": int(np.sum(use)),
+        "nees": float(np.mean(metrics["nees"][use])) if np.any(use) else float("nan"),
+        "nees_expected": N_STATE,
+    }
+
+
+def observability(metrics):
+    """Median ratio posterior std / prior std of every parameter at the end of the maneuver."""
+    ratio = np.median(metrics["final_std"][:, N_KIN:], axis=0) / sim.PARAMETER_STD
+    return {p: float(ratio[i]) for i, p in enumerate(PARAMETERS)}
+
+
+# ---------------------------------------------------------------------------------------------
+# figures
+
+
+def plot_states_and_fits(path, t, truth, estimate, measured, computed, title):
+    """Fig 1-2 of the paper: estimated vs true states, and computed vs measured responses."""
+    fig, axes = plt.subplots(2, 6, figsize=(18, 6), sharex=True)
+    names = ["u", "v", "w", "phi", "theta", "h"]
+    idx = [0, 1, 2, 3, 4, 6]
+    for ax, name, i in zip(axes[0], names, idx, strict=True):
+        scale = STATE_UNITS[name]
+        if truth is not None:
+            ax.plot(t, truth[:, i] * scale, "k-", lw=1.5, label="true")
+        ax.plot(t, estimate[:, i] * scale, "r--", lw=1, label="estimated")
+        ax.set_title(name + (" (deg)" if scale != 1 else ""))
+    for j, (ax, name) in enumerate(zip(axes[1], OUTPUTS, strict=True)):
+        ax.plot(t, measured[:, j] * OUTPUT_UNITS[j], "k.", ms=2, label="measured")
+        ax.plot(t, computed[:, j] * OUTPUT_UNITS[j], "r-", lw=1, label="computed")
+        ax.set_title(f"{name}_m" + (" (deg)" if OUTPUT_UNITS[j] != 1 else ""))
+        ax.set_xlabel("t (s)")
+    axes[0, 0].legend(fontsize=8)
+    axes[1, 0].legend(fontsize=8)
+    fig.suptitle(title)
+    save(fig, path, dpi=90)
+
+
+def single_run_figure(path, truth_flight, rate_hz, key, title):
+    batch = simulated_batch(truth_flight, 1, key, jnp.float64)
+    ys, inputs, mean0, truth = (a[0] for a in batch)
+    model = model_for(rate_hz, jnp.float64)
+    result = run_filter(SVDEKF(), model, ys, inputs, Gaussian(mean0, prior_cov(jnp.float64)))
+    computed = jax.vmap(model.h)(result.mean, inputs)
+    plot_states_and_fits(path, np.asarray(truth_flight.t), np.asarray(truth), np.asarray(result.mean),
+                         np.asarray(ys), np.asarray(computed), title)  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# real data
+
+
+def real_prior(data: flight_data.FlightData):
+    """Initial state from the first measured sample (no lever arms: the data are at the CG), the
+    parameters' prior mean 0, prior std three times the simulator's (the real sensors are unknown)."""
+    y0 = data.outputs[0]
+    vel = np.asarray(flight.body_velocity(y0[0], y0[2], y0[1]))
+    h0 = y0[5] if np.isfinite(y0[5]) else 0.0
+    mean = np.concatenate([vel, [y0[4], y0[3], 0.0, h0], np.zeros(len(PARAMETERS))])
+    std = np.concatenate([KINEMATIC_STD, 3.0 * sim.PARAMETER_STD])
+    return Gaussian(jnp.asarray(mean), jnp.asarray(np.diag(std**2)))
+
+
+#: output noise assumed for real data: the simulator's, with 1 m for the pressure altitude
+REAL_OUTPUT_STD = np.concatenate([sim.OUTPUT_STD[:5], [1.0]])
+
+
+def reconstruct(data, input_std, output_std, estimator=None):
+    """Filter a real record; returns the result, the model and the interval inputs."""
+    model = flight.flight_model(data.dt, jnp.asarray(input_std), jnp.asarray(output_std))
+    inputs = flight.interval_inputs(jnp.asarray(data.inputs))
+    est = SVDEKF() if estimator is None else estimator
+    prior = real_prior(data)
+    result = run_filter(est, model, jnp.asarray(data.outputs), inputs, prior)
+    return result, model, inputs
+
+
+#: output channels whose sensor delay is estimated on real data (the flow vanes), and the largest
+#: delay tried (s). Candidates are whole sample intervals: a delay between samples would be read by
+#: linear interpolation, which averages the noise of two samples and so biases the likelihood
+#: towards half-sample delays (seen on simulated data: a 2-sample lag came out as 1.5)
+DELAYED_OUTPUTS = ("beta", "alpha")
+MAX_DELAY_S = 0.2
+#: coordinate-ascent sweeps over the delayed channels
+DELAY_SWEEPS = 2
+
+
+def delay_grid(dt):
+    return dt * np.arange(int(MAX_DELAY_S / dt + 1e-9) + 1)
+
+
+def max_delays():
+    return tuple(MAX_DELAY_S if o in DELAYED_OUTPUTS else 0.0 for o in OUTPUTS)
+
+
+def aligned(data: flight_data.FlightData, delays) -> flight_data.FlightData:
+    """``data`` with its outputs advanced by ``delays`` (s, one per output channel)."""
+    outputs = flight_data.advance_channels(data.outputs, data.dt, delays, max_delays())
+    return flight_data.FlightData(data.name, data.t, data.inputs, np.asarray(outputs))
+
+
+@eqx.filter_jit
+def _delay_profile(model, outputs, inputs, prior, candidates, dt, limits):
+    def loglik(delays):
+        ys = flight_data.advance_channels(outputs, dt, delays, limits)
+        return run_filter(SVDEKF(), model, ys, inputs, prior).loglik
+
+    return jax.vmap(loglik)(candidates)
+
+
+def delay_profile(data, channel, delays, input_std, output_std):
+    """SVD-EKF log-likelihood of ``data`` for every delay of output ``channel`` in
+    ``delay_grid(data.dt)``, the other channels delayed by ``delays``: one ``vmap`` over the grid."""
+    model = flight.flight_model(data.dt, jnp.asarray(input_std), jnp.asarray(output_std))
+    grid = delay_grid(data.dt)
+    candidates = np.tile(np.asarray(delays, float), (len(grid), 1))
+    candidates[:, OUTPUTS.index(channel)] = grid
+    inputs = flight.interval_inputs(jnp.asarray(data.inputs))
+    return np.asarray(_delay_profile(model, jnp.asarray(data.outputs), inputs, real_prior(data),
+                                     jnp.asarray(candidates), data.dt, max_delays()))  # fmt: skip
+
+
+def estimate_delays(records, input_std, output_std):
+    """Maximum-likelihood sensor delays of ``DELAYED_OUTPUTS``, common to all ``records`` (they are
+    properties of the sensors, not of a maneuver; the records share one sample rate): coordinate
+    ascent of the summed log-likelihood over ``delay_grid``. Returns the 6 delays (s) and, per
+    channel, the last sweep's profiles and each record's own best delay."""
+    intervals = np.array([d.dt for d in records.values()])
+    if not np.allclose(intervals, intervals[0], rtol=1e-6):
+        raise ValueError(f"records: expected one sample interval, got {intervals}")
+    grid = delay_grid(intervals[0])
+    delays = np.zeros(len(OUTPUTS))
+    profiles, computed = {}, {}  # computed: profiles by (channel, the other channels' delays)
+    for _ in range(DELAY_SWEEPS):
+        for channel in DELAYED_OUTPUTS:
+            others = delays.copy()
+            others[OUTPUTS.index(channel)] = 0.0
+            if (channel, tuple(others)) not in computed:
+                computed[channel, tuple(others)] = {
+                    m: delay_profile(d, channel, others, input_std, output_std)
+                    for m, d in records.items()
+                }
+            curves = profiles[channel] = computed[channel, tuple(others)]
+            delays[OUTPUTS.index(channel)] = grid[np.argmax(sum(curves.values()))]
+    best = {c: {m: float(grid[np.argmax(v)]) for m, v in curves.items()}
+            for c, curves in profiles.items()}  # fmt: skip
+    return delays, profiles, best
+
+
+def plot_delay_profiles(path, profiles, delays, grid):
+    fig, axes = plt.subplots(1, len(profiles), figsize=(5 * len(profiles), 3.6))
+    for ax, (channel, curves) in zip(np.atleast_1d(axes), profiles.items(), strict=True):
+        for m, ll in curves.items():
+            ax.plot(grid, ll - ll.max(), "o-", ms=3, label=m)
+        ax.axvline(delays[OUTPUTS.index(channel)], color="k", ls="--", lw=1, label="estimate")
+        ax.set_yscale("symlog", linthresh=10.0)
+        ax.set_xlabel(f"{channel} sensor delay (s)")
+        ax.set_ylabel("log-likelihood - max")
+        ax.legend(fontsize=8)
+    fig.suptitle("Flow-vane delays on the ATTAS maneuvers (SVD-EKF likelihood profiles)")
+    save(fig, path, dpi=90)
+
+
+def residual_rms(data, result, model, inputs, settle):
+    """RMS of the innovations y_k - h(x(k|k-1)) (one-step prediction errors) and of the filtered
+    residuals y_k - h(x(k|k)), per output channel in output units, after ``settle`` samples."""
+    pred = np.asarray(jax.vmap(model.h)(result.predicted_mean, inputs))
+    post = np.asarray(jax.vmap(model.h)(result.mean, inputs))
+    rms = lambda r: np.sqrt(np.nanmean((r[settle:]) ** 2, axis=0)) * OUTPUT_UNITS
+    innov, filt = rms(data.outputs - pred), rms(data.outputs - post)
+    as_dict = lambda v: {
+        o: (float(v[i]) if np.isfinite(v[i]) else None) for i, o in enumerate(OUTPUTS)
+    }
+    return as_dict(innov), as_dict(filt), post
+
+
+def parameter_table(result):
+    """Final estimate and standard deviation of every parameter, in report units."""
+    mean = np.asarray(result.mean[-1, N_KIN:]) * PARAMETER_UNITS
+    std = np.sqrt(np.diag(np.asarray(result.cov[-1]))[N_KIN:]) * PARAMETER_UNITS
+    return {p: {"value": float(mean[i]), "std": float(std[i])} for i, p in enumerate(PARAMETERS)}
+
+
+def bias_agreement(parameters):
+    """For every entry of the parameter tables and pair of maneuvers:
+    |difference| / sqrt(std_a^2 + std_b^2)."""
+    names = list(parameters)
+    return {
+        p: {f"{a}-{b}": abs(parameters[a][p]["value"] - parameters[b][p]["value"])
+            / np.hypot(parameters[a][p]["std"], parameters[b][p]["std"])
+            for i, a in enumerate(names) for b in names[i + 1:]}
+        for p in parameters[names[0]]
+    }  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# maximum-likelihood tuning of Q and R
+
+
+class NoiseLevels(eqx.Module):
+    """The tuned covariances: Qc of the 6 measured inputs per sample (the model's Q is
+    blockdiag(Qc, Qc) on the interval input, so one Qc ties both blocks) and R of the 6 outputs."""
+
+    Qc: jax.Array
+    R: jax.Array
+
+    def model(self, dt, lever_arms):
+        std = lambda cov: jnp.sqrt(jnp.diagonal(cov))
+        return flight.flight_model(dt, std(self.Qc), std(self.R), lever_arms)
+
+
+def tune_noise(
+    data_ys, inputs, prior, dt, input_std, output_std, lever_arms, steps, *, tune_r=True
+):
+    """Maximise the SVD-EKF log-likelihood over the 6 input noise variances and, if ``tune_r``, the
+    6 output noise variances (log-diagonal parameters, ``steps`` L-BFGS steps of
+    :func:`jaxest.tune.fit`). Returns (input_std, output_std, log-likelihood before every step and after the last)."""
+    n_obs = float(np.sum(np.isfinite(np.asarray(data_ys))))
+
+    def loss(noise):  # minus the log-likelihood per measurement
+        model = noise.model(dt, lever_arms)
+        return -run_filter(SVDEKF(), model, data_ys, inputs, prior).loglik / n_obs
+
+    start = NoiseLevels(
+        jnp.diag(jnp.asarray(input_std) ** 2), jnp.diag(jnp.asarray(output_std) ** 2)
+    )
+    params = {"Qc": "log_diagonal", "R": "log_diagonal"} if tune_r else {"Qc": "log_diagonal"}
+    fitted = fit(start, loss, params, optimizer=optax.lbfgs(), num_steps=steps)
+    losses = np.append(np.asarray(fitted.losses), float(loss(fitted.model)))
+    std = lambda cov: np.sqrt(np.diagonal(np.asarray(cov)))
+    return std(fitted.model.Qc), std(fitted.model.R), list(-losses * n_obs)
+
+
+def noise_dict(input_std, output_std):
+    units_in = PARAMETER_UNITS[: flight.N_IN]  # the input biases' units
+    d = {f"{n}": float(s * u) for n, s, u in zip(flight.INPUTS, input_std, units_in, strict=True)}
+    d.update(
+        {f"{n}": float(s * u) for n, s, u in zip(OUTPUTS, output_std, OUTPUT_UNITS, strict=True)}
+    )
+    return d
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def conditions_for(quick: bool):
+    maneuvers = ("elevator",) if quick else sim.MANEUVERS
+    rates = (10,) if quick else (10, 32)
+    dtypes = ("float64",) if quick else ("float64", "float32")
+    return [(m, r, d) for r in rates for d in dtypes for m in maneuvers]
+
+
+def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict:  # noqa: C901
+    out = Path(out) / NAME
+    out.mkdir(parents=True, exist_ok=True)
+    runs = runs or (3 if quick else 100)
+    duration = 6.0 if quick else sim.DURATION
+    chunk = min(runs, 25)
+    key = jax.random.key(seed)
+    conditions = conditions_for(quick)
+    data_dir = flight_data.find_data_dir(options.get("data") if options else None)
+    tune_steps = 0 if quick else 40
+    summary: dict = {"conditions": {}, "observability": {}, "settings": {
+        "runs": runs, "duration_s": duration, "seed": seed, "nees_diverged": NEES_DIVERGED,
+        "observable_ratio": OBSERVABLE_RATIO, "units": "m/s, deg, deg/s, m/s^2, m",
+    }}  # fmt: skip
+    tables = []
+    figures = () if quick else ((10, 1), (32, 2))  # --quick: only the real-data figure
+    total = len(conditions) * len(FILTERS) + len(figures) + ((2 if quick else 6) if data_dir else 0)
+    with Progress(NAME, total) as progress:
+        truths = {}
+        for maneuver, rate, dtype_name in conditions:
+            dtype = jnp.dtype(dtype_name)
+            if (maneuver, rate) not in truths:
+                truths[maneuver, rate] = sim.true_flight(maneuver, rate, duration)
+            truth = truths[maneuver, rate]
+            cond_key = jax.random.fold_in(key, 100 * sim.MANEUVERS.index(maneuver) + rate)
+            batch = simulated_batch(truth, runs, cond_key, dtype)  # same flights in both dtypes
+            model, P0 = model_for(rate, dtype), prior_cov(dtype)
+            settle = int(SETTLE_S * rate)
+            metrics = {}
+            for fname, est in FILTERS.items():
+                metrics[fname] = monte_carlo(est, model, batch, P0, settle, chunk)
+                progress.advance(f"{maneuver} {rate} Hz {dtype_name} {fname}")
+            common = ~np.any([diverged(m) for m in metrics.values()], axis=0)
+            name = f"{maneuver}_{rate}hz_{dtype_name}"
+            entry = {"maneuver": maneuver, "rate_hz": rate, "dtype": dtype_name}
+            entry.update({f: summarise(m, common) for f, m in metrics.items()})
+            summary["conditions"][name] = entry
+            if dtype_name == "float64" and rate == max(r for _, r, _ in conditions):
+                ratios = observability(metrics["svd_ekf"])
+                summary["observability"][maneuver] = {
+                    "std_ratio": ratios,
+                    "observable": [p for p, r in ratios.items() if r < OBSERVABLE_RATIO],
+                }
+            for f in FILTERS:
+                F = entry[f]
+                tables.append([name, f, F["diverged_runs"], F["runs"], F["nees"],
+                               *[F["rmse"][s] for s in KINEMATIC_STATES]])  # fmt: skip
+        for rate, fig in figures:
+            maneuver = "elevator" if quick else "aileron"
+            path = out / f"fig{fig}_states_{rate}hz.png"
+            if (maneuver, rate) not in truths:
+                truths[maneuver, rate] = sim.true_flight(maneuver, rate, duration)
+            single_run_figure(path, truths[maneuver, rate], rate, jax.random.fold_in(key, fig),
+                              f"SVD-EKF, simulated {maneuver} maneuver, {rate} Hz")  # fmt: skip
+            progress.advance(f"figure {fig}")
+        # compiling the likelihood gradient is the slowest piece: --quick leaves tuning out
+        if quick:
+            summary["tuning"] = {}
+        else:
+            if ("elevator", 32) not in truths:
+                truths["elevator", 32] = sim.true_flight("elevator", 32, duration)
+            summary["tuning"] = {
+                "simulated": tune_simulated(key, truths["elevator", 32], tune_steps)
+            }
+        if data_dir is not None:
+            summary["real_data"] = real_data_part(out, data_dir, quick, tune_steps, progress)
+            summary["tuning"]["real"] = summary["real_data"].pop("tuning")
+        else:
+            summary["real_data_note"] = f"no flight data found. {flight_data.DOWNLOAD_HINT}"
+    write_tables(out, summary, tables)
+    write_json(out / "summary.json", summary)
+    return summary
+
+
+def tune_simulated(key, truth: sim.TrueFlight, steps):
+    """ML tuning on one simulated flight (``truth``) whose true noise is twice the nominal level,
+    starting from the nominal level: the tuned values should move towards the truth."""
+    rate = truth.rate_hz
+    ys, inputs, mean0, _ = (a[0] for a in simulated_batch(truth, 1, jax.random.fold_in(key, 7),
+                                                          jnp.float64, noise_scale=2.0))  # fmt: skip
+    prior = Gaussian(mean0, prior_cov(jnp.float64))
+    in_std, out_std, hist = tune_noise(ys, inputs, prior, 1.0 / rate, sim.INPUT_STD,
+                                       sim.OUTPUT_STD, sim.LEVER_ARMS, steps)  # fmt: skip
+    return {
+        "true_noise": noise_dict(2 * sim.INPUT_STD, 2 * sim.OUTPUT_STD),
+        "initial_noise": noise_dict(sim.INPUT_STD, sim.OUTPUT_STD),
+        "tuned_noise": noise_dict(in_std, out_std),
+        "loglik_initial": hist[0],
+        "loglik_tuned": hist[-1],
+        "steps": steps,
+    }
+
+
+def real_data_part(out, data_dir, quick, tune_steps, progress):  # noqa: C901
+    maneuvers = ("elevator",) if quick else tuple(flight_data.ATTAS_FILES)
+    raw = {m: flight_data.load_attas(m, data_dir) for m in maneuvers}
+    if quick:  # first 5 s
+        d = raw["elevator"]
+        n = int(5 * d.rate_hz)
+        raw["elevator"] = flight_data.FlightData(d.name, d.t[:n], d.inputs[:n], d.outputs[:n])
+    report: dict = {"files": {m: flight_data.ATTAS_FILES[m] for m in maneuvers}}
+    delays, profiles, best = estimate_delays(raw, sim.INPUT_STD, REAL_OUTPUT_STD)
+    report["sensor_delays_s"] = {o: float(delays[OUTPUTS.index(o)]) for o in DELAYED_OUTPUTS}
+    report["sensor_delays_by_maneuver_s"] = best
+    plot_delay_profiles(
+        out / "fig_attas_delays.png", profiles, delays, delay_grid(raw["elevator"].dt)
+    )
+    progress.advance("sensor delays")
+    records = {m: aligned(d, delays) for m, d in raw.items()}
+    elev = records["elevator"]
+    settle = int(SETTLE_S * elev.rate_hz)
+    in_std, out_std = sim.INPUT_STD, REAL_OUTPUT_STD
+    report["tuning"] = {}
+    if tune_steps:  # ML tuning of Q and R on the elevator maneuver, used for every maneuver
+        in_std, out_std, hist = tune_noise(
+            jnp.asarray(elev.outputs), flight.interval_inputs(jnp.asarray(elev.inputs)),
+            real_prior(elev), elev.dt, sim.INPUT_STD, REAL_OUTPUT_STD, flight.LeverArms(),
+            tune_steps, tune_r=False,
+        )  # fmt: skip
+        report["tuning"] = {
+            "initial_noise": noise_dict(sim.INPUT_STD, REAL_OUTPUT_STD),
+            "tuned_noise": noise_dict(in_std, out_std),
+            "loglik_initial": hist[0], "loglik_tuned": hist[-1], "steps": tune_steps,
+            "data": "ATTAS elevator, flow angles aligned",
+        }  # fmt: skip
+        progress.advance("real-data tuning")
+    params, residuals, residuals_untuned, residuals_unaligned = {}, {}, {}, {}
+    for m, d in records.items():
+        result, model, inputs = reconstruct(d, in_std, out_std)
+        innov, filt, computed = residual_rms(d, result, model, inputs, settle)
+        params[m] = parameter_table(result)
+        residuals[m] = {"innovation_rms": innov, "filtered_rms": filt,
+                        "diverged": bool(np.any(np.asarray(result.status) != 0))}  # fmt: skip
+        r_raw, model_raw, inputs_raw = reconstruct(raw[m], in_std, out_std)
+        residuals_unaligned[m] = residual_rms(raw[m], r_raw, model_raw, inputs_raw, settle)[0]
+        if tune_steps:
+            r0, model0, inputs0 = reconstruct(d, sim.INPUT_STD, REAL_OUTPUT_STD)
+            residuals_untuned[m] = residual_rms(d, r0, model0, inputs0, settle)[0]
+        plot_states_and_fits(out / f"fig_attas_{m}.png", d.t, None, np.asarray(result.mean),
+                             d.outputs, computed, f"SVD-EKF on ATTAS {m} maneuver (25 Hz)")  # fmt: skip
+        progress.advance(f"ATTAS {m}")
+    report["parameters"] = params["elevator"]
+    report["parameters_by_maneuver"] = params
+    report["residual_rms"] = residuals["elevator"]["innovation_rms"]
+    report["residuals_by_maneuver"] = residuals
+    report["innovation_rms_untuned"] = residuals_untuned
+    report["innovation_rms_unaligned"] = residuals_unaligned
+    report["hfb320_noise_x3"] = {k: 3 * v for k, v in HFB320_NOISE.items()}
+    if len(params) > 1:
+        agreement = bias_agreement(params)
+        report["bias_agreement_sigma"] = agreement
+        report["parameters_agreeing_within"] = {
+            f"{k}_sigma": [p for p, pairs in agreement.items() if max(pairs.values()) <= k]
+            for k in (1, 2, 3)
+        }
+        report["bias_agreement_note"] = BIAS_AGREEMENT_NOTE
+    if not quick:
+        report["hfb320"] = reconstruct_hfb320(out, data_dir)
+        progress.advance("HFB-320")
+    return report
+
+
+def reconstruct_hfb320(out, data_dir):
+    """The HFB-320 record (10 Hz, no altitude channel) with the nominal noise levels."""
+    hfb = flight_data.load_hfb320(data_dir)
+    delays, _, _ = estimate_delays({"hfb320": hfb}, sim.INPUT_STD, REAL_OUTPUT_STD)
+    hfb = aligned(hfb, delays)
+    result, model, inputs = reconstruct(hfb, sim.INPUT_STD, REAL_OUTPUT_STD)
+    innov, filt, computed = residual_rms(hfb, result, model, inputs, int(SETTLE_S * hfb.rate_hz))
+    plot_states_and_fits(out / "fig_hfb320.png", hfb.t, None, np.asarray(result.mean), hfb.outputs,
+                         computed, "SVD-EKF on HFB-320 elevator record (10 Hz)")  # fmt: skip
+    return {"parameters": parameter_table(result), "innovation_rms": innov, "filtered_rms": filt,
+            "sensor_delays_s": {o: float(delays[OUTPUTS.index(o)]) for o in DELAYED_OUTPUTS}}  # fmt: skip
+
+
+def write_tables(out, summary, rows):
+    text = "# SVD-EKF flight estimation: simulated Monte Carlo\n\n"
+    text += "State RMSE after the first second (m/s, deg, m), over the runs no filter lost.\n\n"
+    text += markdown_table(["condition", "filter", "diverged", "runs", "NEES (23)",
+                            *KINEMATIC_STATES], rows)  # fmt: skip
+    text += "\n## Parameter observability (posterior std / prior std, SVD-EKF)\n\n"
+    obs = summary["observability"]
+    text += markdown_table(["parameter", *obs], [[p, *[obs[m]["std_ratio"][p] for m in obs]]
+                                                 for p in PARAMETERS], floatfmt=".2f")  # fmt: skip
+    if "real_data" in summary:
+        real = summary["real_data"]
+        text += "\n## ATTAS: estimated parameters (value ± std; m/s^2, deg/s, m/s, deg, m)\n\n"
+        by = real["parameters_by_maneuver"]
+        text += markdown_table(["parameter", *by], [
+            [p, *[f"{by[m][p]['value']:.4g} ± {by[m][p]['std']:.2g}" for m in by]]
+            for p in PARAMETERS])  # fmt: skip
+        delays = ", ".join(f"{c} {v:.2f} s" for c, v in real["sensor_delays_s"].items())
+        text += f"\n## ATTAS: innovation RMS (m/s, deg, m); flow-vane delays {delays}\n\n"
+        res = real["residuals_by_maneuver"]
+        rows = [
+            [m, "aligned, tuned Q", *[res[m]["innovation_rms"][o] for o in OUTPUTS]] for m in res
+        ]
+        for label, key in (
+            ("aligned, nominal Q", "innovation_rms_untuned"),
+            ("not aligned, tuned Q", "innovation_rms_unaligned"),
+        ):
+            rows += [[m, label, *[v[o] for o in OUTPUTS]] for m, v in real[key].items()]
+        text += markdown_table(["maneuver", "data, noise", *OUTPUTS], rows)
+        if "parameters_agreeing_within" in real:
+            agree = real["parameters_agreeing_within"]
+            text += f"\nAgreeing between maneuvers within 2 sigma: {agree['2_sigma']}. "
+            text += real["bias_agreement_note"] + "\n"
+    (out / "tables.md").write_text(text)

@@ -1,0 +1,212 @@
+"""Flight-path reconstruction model of the SVD-EKF paper (Zhang, Dai & Zhang), section 5.1.
+
+State (eq 31): the 7 kinematic states x = [u, v, w, phi, theta, psi, h] (body velocities in m/s,
+Euler angles in rad, altitude in m) augmented with the 16 sensor parameters
+
+    b = [b_ax, b_ay, b_az, b_p, b_q, b_r,  b_V, b_beta, b_alpha, b_theta, b_phi, b_h,
+         lam_V, lam_beta, lam_alpha, lam_h],
+
+23 states in all. Parameters are random constants (b' = 0).
+
+Inputs (eq 27): the measured specific forces and body rates u_m = [a_x, a_y, a_z, p, q, r]_m,
+corrected by the biases: a_x = a_xm + b_x + eta_x, ..., r = r_m + b_r + eta_r. The process noise is
+the input noise eta, so the model is a ``NonlinearGaussian(..., noise_on_input=True)`` whose noise
+gain is G = df/du.
+
+Kinematics (eq 26, corrected as in NOTES.md section 1; the printed phi' line repeats terms)::
+
+    u' = a_x - g sin(theta) + r v - q w
+    v' = a_y + g sin(phi) cos(theta) + p w - r u
+    w' = a_z + g cos(phi) cos(theta) + q u - p v
+    phi'   = p + (q sin(phi) + r cos(phi)) tan(theta)
+    theta' = q cos(phi) - r sin(phi)
+    psi'   = (q sin(phi) + r cos(phi)) / cos(theta)
+    h'     = u sin(theta) - v sin(phi) cos(theta) - w cos(phi) cos(theta)
+
+Discretisation (eq 32): instead of linearising and then discretising, the kinematics are integrated
+over each sample interval by classical Runge-Kutta (``substeps`` RK4 steps per interval) with the
+measured inputs interpolated linearly between the samples k and k+1. The filters' input at step k
+is therefore the 12-vector [u_m(k), u_m(k+1)] (see :func:`interval_inputs`); white input noise of
+covariance Qc on every sample gives Q = blockdiag(Qc, Qc) on that vector (:func:`input_noise_cov`),
+which reproduces the variance dt^2 Qc / 2 of the interval-averaged noise.
+
+Observations (eq 28), z = [V, beta, alpha, theta, phi, h]::
+
+    V_m     = (1 + lam_V) sqrt(u^2 + v^2 + w^2) + b_V
+    beta_m  = (1 + lam_beta)  atan((v + r x_beta - p z_beta) / u) + b_beta
+    alpha_m = (1 + lam_alpha) atan((w - q x_alpha + p y_alpha) / u) + b_alpha
+    theta_m = theta + b_theta,   phi_m = phi + b_phi,   h_m = (1 + lam_h) h + b_h
+
+with the vane lever arms x_beta, z_beta, x_alpha, y_alpha (known constants, metres) and the
+bias-corrected rates p, q, r at sample k.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from jaxest.models import NonlinearGaussian
+
+#: standard gravity, m/s^2
+GRAVITY = 9.80665
+
+KINEMATIC_STATES = ("u", "v", "w", "phi", "theta", "psi", "h")
+PARAMETERS = (
+    "b_ax", "b_ay", "b_az", "b_p", "b_q", "b_r",
+    "b_V", "b_beta", "b_alpha", "b_theta", "b_phi", "b_h",
+    "lam_V", "lam_beta", "lam_alpha", "lam_h",
+)  # fmt: skip
+STATES = KINEMATIC_STATES + PARAMETERS
+INPUTS = ("a_x", "a_y", "a_z", "p", "q", "r")
+OUTPUTS = ("V", "beta", "alpha", "theta", "phi", "h")
+
+N_KIN, N_PAR, N_IN, N_OUT = len(KINEMATIC_STATES), len(PARAMETERS), len(INPUTS), len(OUTPUTS)
+N_STATE = N_KIN + N_PAR
+
+
+def kinematics(
+    x: Float[Array, " 7"], inputs: Float[Array, " 6"], gravity=GRAVITY
+) -> Float[Array, " 7"]:
+    """Time derivative of [u, v, w, phi, theta, psi, h] (eq 26, corrected) for the true inputs
+    [a_x, a_y, a_z, p, q, r] (specific forces in body axes, body rates)."""
+    u, v, w, phi, theta, _, _ = x
+    ax, ay, az, p, q, r = inputs
+    sphi, cphi = jnp.sin(phi), jnp.cos(phi)
+    sth, cth = jnp.sin(theta), jnp.cos(theta)
+    turn = q * sphi + r * cphi
+    return jnp.stack(
+        [
+            ax - gravity * sth + r * v - q * w,
+            ay + gravity * sphi * cth + p * w - r * u,
+            az + gravity * cphi * cth + q * u - p * v,
+            p + turn * sth / cth,
+            q * cphi - r * sphi,
+            turn / cth,
+            u * sth - v * sphi * cth - w * cphi * cth,
+        ]
+    )
+
+
+def integrate_interval(x, inputs_start, inputs_end, dt, substeps: int = 1, gravity=GRAVITY):
+    """Integrate :func:`kinematics` over one interval of length ``dt`` by ``substeps`` RK4 steps,
+    the inputs interpolated linearly from ``inputs_start`` to ``inputs_end``."""
+    h = dt / substeps
+
+    def inputs_at(s):  # s in [0, 1]: fraction of the interval
+        return inputs_start + s * (inputs_end - inputs_start)
+
+    for i in range(substeps):
+        s0, s_mid, s1 = i / substeps, (i + 0.5) / substeps, (i + 1) / substeps
+        u0, u_mid, u1 = inputs_at(s0), inputs_at(s_mid), inputs_at(s1)
+        k1 = kinematics(x, u0, gravity)
+        k2 = kinematics(x + 0.5 * h * k1, u_mid, gravity)
+        k3 = kinematics(x + 0.5 * h * k2, u_mid, gravity)
+        k4 = kinematics(x + h * k3, u1, gravity)
+        x = x + (h / 6.0) * (k1 + 2.0 * k2 + 2.0 * k3 + k4)
+    return x
+
+
+class FlightTransition(eqx.Module):
+    """f(x^a, u) of eq 32: RK4 over one sample interval, parameters constant.
+
+    ``u`` is [u_m(k), u_m(k+1)] (12 entries); the input biases b[0:6] are added to both ends (eq 27).
+    """
+
+    dt: float = eqx.field(static=True)
+    substeps: int = eqx.field(static=True, default=1)
+    gravity: float = eqx.field(static=True, default=GRAVITY)
+
+    def __call__(self, xa, u):
+        x, b = xa[:N_KIN], xa[N_KIN:]
+        start, end = u[:N_IN] + b[:N_IN], u[N_IN:] + b[:N_IN]
+        x_next = integrate_interval(x, start, end, self.dt, self.substeps, self.gravity)
+        return jnp.concatenate([x_next, b])
+
+
+class LeverArms(eqx.Module):
+    """Positions of the flow vanes relative to the centre of gravity (m), eq 28."""
+
+    x_beta: float = eqx.field(static=True, default=0.0)
+    z_beta: float = eqx.field(static=True, default=0.0)
+    x_alpha: float = eqx.field(static=True, default=0.0)
+    y_alpha: float = eqx.field(static=True, default=0.0)
+
+
+class FlightObservation(eqx.Module):
+    """h(x^a, u) of eq 28/33: airspeed, flow angles at the vanes, attitude and altitude."""
+
+    lever_arms: LeverArms = LeverArms()  # noqa: RUF009 - a frozen Module, safe as a default
+
+    def __call__(self, xa, u):
+        u_b, v, w, phi, theta, _, h = xa[:N_KIN]
+        b = xa[N_KIN:]
+        p, q, r = u[3:6] + b[3:6]
+        arms = self.lever_arms
+        speed = jnp.sqrt(u_b**2 + v**2 + w**2)
+        beta = jnp.arctan2(v + r * arms.x_beta - p * arms.z_beta, u_b)
+        alpha = jnp.arctan2(w - q * arms.x_alpha + p * arms.y_alpha, u_b)
+        b_V, b_beta, b_alpha, b_theta, b_phi, b_h = b[6:12]
+        lam_V, lam_beta, lam_alpha, lam_h = b[12:16]
+        return jnp.stack(
+            [
+                (1.0 + lam_V) * speed + b_V,
+                (1.0 + lam_beta) * beta + b_beta,
+                (1.0 + lam_alpha) * alpha + b_alpha,
+                theta + b_theta,
+                phi + b_phi,
+                (1.0 + lam_h) * h + b_h,
+            ]
+        )
+
+
+#: no lever arms: flow angles already reduced to the centre of gravity (as in the ATTAS data)
+AT_CG = LeverArms()
+
+
+def input_noise_cov(input_std: Float[Array, " 6"]) -> Float[Array, "12 12"]:
+    """Q on the interval input [u_m(k), u_m(k+1)] for white noise of std ``input_std`` per sample."""
+    qc = jnp.diag(jnp.asarray(input_std) ** 2)
+    zero = jnp.zeros_like(qc)
+    return jnp.block([[qc, zero], [zero, qc]])
+
+
+def flight_model(
+    dt: float,
+    input_std: Float[Array, " 6"],
+    output_std: Float[Array, " 6"],
+    lever_arms: LeverArms = AT_CG,
+    substeps: int = 1,
+) -> NonlinearGaussian:
+    """The augmented 23-state model (eqs 31-33) with input noise std ``input_std`` (a_x, a_y, a_z in
+    m/s^2, p, q, r in rad/s) and measurement noise std ``output_std`` (V in m/s, angles in rad, h in
+    m). Its inputs are :func:`interval_inputs` of the measured inputs. The dtype follows the arrays
+    given."""
+    return NonlinearGaussian(
+        f=FlightTransition(dt=float(dt), substeps=substeps),
+        h=FlightObservation(lever_arms),
+        Q=input_noise_cov(input_std),
+        R=jnp.diag(jnp.asarray(output_std) ** 2),
+        noise_on_input=True,
+    )
+
+
+def interval_inputs(measured: Float[Array, "T 6"]) -> Float[Array, "T 12"]:
+    """[u_m(k), u_m(k+1)] for every step k; the last sample is repeated for the last step (whose
+    prediction lies beyond the data and is never used)."""
+    measured = jnp.asarray(measured)
+    following = jnp.concatenate([measured[1:], measured[-1:]], axis=0)
+    return jnp.concatenate([measured, following], axis=1)
+
+
+def body_velocity(speed, alpha, beta):
+    """[u, v, w] from airspeed and flow angles (no lever arm): the inverse of eq 28's first rows."""
+    return jnp.stack(
+        [
+            speed * jnp.cos(alpha) * jnp.cos(beta),
+            speed * jnp.sin(beta),
+            speed * jnp.sin(alpha) * jnp.cos(beta),
+        ],
+        axis=-1,
+    )

@@ -1,0 +1,151 @@
+"""Gradient fitting of model matrices (Q, R, P0, ...) with optax.
+
+A symmetric positive definite matrix is optimised through an unconstrained parameter:
+
+- ``"cholesky"``: P = L L^T, L lower triangular with log-diagonal, so any real parameter is SPD;
+- ``"log_diagonal"``: P = diag(exp(theta)).
+
+``free`` masks choose which entries of the parameter move (the others keep their initial value),
+e.g. a diagonal-only Cholesky fit, or one variance held fixed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optax
+
+PARAMETRISATIONS = ("cholesky", "log_diagonal")
+
+
+def to_unconstrained(P, parametrisation: str):
+    """The unconstrained parameter of SPD ``P``."""
+    if parametrisation == "cholesky":
+        L = jnp.linalg.cholesky(P)
+        return jnp.tril(L, -1) + jnp.diag(jnp.log(jnp.diag(L)))
+    if parametrisation == "log_diagonal":
+        return jnp.log(jnp.diag(P))
+    raise ValueError(
+        f"parametrisation: expected one of {PARAMETRISATIONS}, got {parametrisation!r}"
+    )
+
+
+def from_unconstrained(theta, parametrisation: str):
+    """The SPD matrix of an unconstrained parameter (inverse of :func:`to_unconstrained`)."""
+    if parametrisation == "cholesky":
+        L = jnp.tril(theta, -1) + jnp.diag(jnp.exp(jnp.diag(theta)))
+        return L @ L.T
+    return jnp.diag(jnp.exp(theta))
+
+
+class FitResult(eqx.Module):
+    """The fitted model and the loss after each optimiser step."""
+
+    model: eqx.Module
+    losses: jax.Array
+
+
+def _get(model, path: str):
+    for name in path.split("."):
+        model = getattr(model, name)
+    return model
+
+
+def fit(
+    model,
+    loss: Callable,
+    params: dict[str, str] | Sequence[str] = ("Q", "R"),
+    *,
+    free: dict[str, jax.Array] | None = None,
+    optimizer: optax.GradientTransformation | None = None,
+    num_steps: int = 200,
+):
+    """Minimise ``loss(model)`` over the SPD matrices named in ``params``.
+
+    Args:
+        model: any equinox Module (a model, or a pytree holding model and prior).
+        loss: ``model -> scalar``, e.g. :func:`neg_loglik` or :func:`supervised_mse`.
+        params: attribute paths (``"Q"``, ``"R"``, ``"prior.cov"``...), as a sequence
+            (Cholesky parametrisation) or a dict path -> ``"cholesky"`` / ``"log_diagonal"``.
+        free: optional path -> boolean mask of the unconstrained parameter's free entries
+            (shape n x n for Cholesky, n for log-diagonal).
+        optimizer: an optax transformation (default ``optax.adam(0.05)``); line-search
+            methods such as ``optax.lbfgs()`` work too (they receive the value and the loss).
+        num_steps: optimiser steps.
+    """
+    if not isinstance(params, dict):
+        params = dict.fromkeys(params, "cholesky")
+    for path, kind in params.items():
+        if kind not in PARAMETRISATIONS:
+            raise ValueError(f"params[{path!r}]: expected one of {PARAMETRISATIONS}, got {kind!r}")
+        try:
+            P = _get(model, path)
+        except AttributeError as err:
+            raise ValueError(f"params: model has no attribute {path!r}") from err
+        if getattr(P, "ndim", 0) != 2:
+            raise ValueError(f"params[{path!r}]: expected a constant n x n matrix to fit")
+    free = free or {}
+    optimizer = optax.with_extra_args_support(optimizer or optax.adam(0.05))
+    theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}
+    masks = {p: jnp.asarray(free.get(p, jnp.ones_like(t)), t.dtype) for p, t in theta0.items()}
+
+    def build(theta):
+        out = model
+        for path, kind in params.items():
+            value = theta0[path] + masks[path] * (theta[path] - theta0[path])
+            out = eqx.tree_at(
+                lambda m, path=path: _get(m, path), out, from_unconstrained(value, kind)
+            )
+        return out
+
+    objective = lambda theta: loss(build(theta))
+    opt_state0 = optimizer.init(theta0)
+    value_and_grad = _value_and_grad(objective, opt_state0)
+
+    def body(carry, _):
+        theta, opt_state = carry
+        value, grads = value_and_grad(theta, state=opt_state)
+        updates, opt_state = optimizer.update(
+            grads, opt_state, theta, value=value, grad=grads, value_fn=objective
+        )
+        return (optax.apply_updates(theta, updates), opt_state), value
+
+    (theta, _), losses = jax.lax.scan(body, (theta0, opt_state0), None, num_steps)
+    return FitResult(build(theta), losses)
+
+
+def _value_and_grad(objective, opt_state):
+    """Loss and gradient at the current parameter. A line search (``optax.lbfgs``) keeps both for
+    the point it accepted in its state: they are taken from there instead of evaluated again."""
+    try:
+        stored = [optax.tree.get(opt_state, name) for name in ("value", "grad")]
+    except KeyError:  # several line searches in one chain: evaluate
+        stored = [None]
+    if any(s is None for s in stored):
+        return lambda theta, state: jax.value_and_grad(objective)(theta)
+    return optax.value_and_grad_from_state(objective)
+
+
+def neg_loglik(estimator, ys, prior, inputs=None) -> Callable:
+    """Loss: minus the mean log-likelihood per run and step of a batch ``ys`` (runs, T, m)."""
+    from jaxest.run import run
+
+    def loss(model):
+        lls = jax.vmap(lambda y, u: run(estimator, model, y, u, prior).loglik)(ys, inputs)
+        return -jnp.mean(lls) / ys.shape[1]
+
+    return loss
+
+
+def supervised_mse(estimator, ys, states, prior, inputs=None) -> Callable:
+    """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n)."""
+    from jaxest.run import run
+
+    def loss(model):
+        means = jax.vmap(lambda y, u: run(estimator, model, y, u, prior).mean)(ys, inputs)
+        return jnp.mean((means - states) ** 2)
+
+    return loss
