@@ -1,5 +1,0 @@
-import sys
-
-from jaxest.cli import main
-
-sys.exit(main())
