@@ -52,8 +52,9 @@ def monte_carlo(
         num_runs: number of runs N.
         chunk_size: runs vectorised together on each device (bounds peak memory at about
             chunk_size runs' intermediates per device); ``None``: all runs at once. Each device
-            then computes the same batch shape whatever the device count, so results are
-            bitwise identical on one device and on many.
+            then computes the same batch shape whatever the device count, so results agree on
+            one device and on many to rounding (bitwise where XLA compiles the per-device
+            program alike; fused small-matrix arithmetic can differ in the last bits).
         mesh: a 1-D ``Mesh`` whose axis shards the runs, ``None`` for one device, or ``"auto"``
             (every device when there are several).
 

@@ -111,7 +111,12 @@ def test_two_processes_match_one(tmp_path):
     assert np.all(np.isfinite(ref["loglik"]))
     # different runs differ (the keys were really split, not one run repeated)
     assert np.unique(ref["loglik"]).size == NUM_RUNS
+    # Same keys and batch shapes: the runs agree to rounding. Not bitwise: XLA fuses the filters'
+    # unrolled small-matrix arithmetic differently in the sharded program (measured: 1.6e-14
+    # relative; bitwise with LAPACK factorisations, i.e. jaxest.linalg.SMALL_FACTOR = 0).
     for i in range(2):
         got = np.load(tmp_path / f"pair_{i}.npz")
         for name in ("loglik", "final_error"):
-            np.testing.assert_array_equal(got[name], ref[name], err_msg=f"process {i}: {name}")
+            np.testing.assert_allclose(
+                got[name], ref[name], rtol=1e-12, atol=0, err_msg=f"process {i}: {name}"
+            )
