@@ -1,46 +1,125 @@
 """Algebraic Riccati equations in JAX: jit-able, vmap-able and differentiable.
 
-Both solvers take scipy's (control) argument convention:
+The control-form solvers take scipy's argument convention:
 
-- :func:`solve_dare` solves  X = A^T X A - A^T X B (R + B^T X B)^{-1} B^T X A + Q
-  (the filter form, eq 5 of the Wiener-smoother paper, is ``solve_dare(F.T, H.T, G Q G.T, R)``);
+- :func:`solve_dare` solves  X = A^T X A - A^T X B (R + B^T X B)^{-1} B^T X A + Q;
 - :func:`solve_care` solves  A^T X + X A - X B R^{-1} B^T X + Q = 0;
 - :func:`lqr_gain` is the continuous-time LQR gain K = R^{-1} B^T X (u = -K x).
 
-They return the stabilising solution: the closed loop A - B K is Schur (discrete) / Hurwitz
-(continuous). They assume (A, B) stabilisable and (Q, A) detectable (every mode of A outside the
-stability region is controllable through B and observable through Q); then that solution is also
-the unique positive semidefinite one, and the doubling iteration is guaranteed to converge to it.
-When the arguments are concrete (not traced) both conditions are checked and a ``ValueError`` says
-which mode fails; under ``jit``/``vmap`` a violated assumption shows up as NaN or a
-non-stabilising result instead.
+The filter forms take the model's own matrices: :func:`solve_filter_dare` solves eq 5 of the
+Wiener-smoother paper (docs/papers/wiener.md), Sigma = F Sigma F^T - F Sigma H^T
+(H Sigma H^T + R)^{-1} H Sigma F^T + Q, and :func:`solve_filter_care` the Kalman-Bucy equation
+F Sigma + Sigma F^T - Sigma H^T R^{-1} H Sigma + Q = 0 (they are the control forms of
+(F^T, H^T), with argument checks and messages in terms of F and H).
 
-Forward solvers: the structured doubling algorithm (SDA) for the DARE and the matrix sign function
-of the Hamiltonian for the CARE, both with quadratic convergence. Gradients (reverse mode) come
-from implicit differentiation: with K the optimal gain and A_c = A - B K, the derivative dX of
-either equation solves a Stein (discrete) or Lyapunov (continuous) equation in A_c, so the
-cotangent needs one adjoint solve, A_c Y A_c^T - Y + Xbar = 0 resp. A_c Y + Y A_c^T + Xbar = 0,
-after which Qbar = Y, Rbar = K Y K^T, Abar = 2 X A_c Y (discrete) or 2 X Y (continuous) and
-Bbar = -Abar K^T.
+Each returns a :class:`RiccatiSolution`: the stabilising solution X (the closed loop A - B K is
+Schur, resp. Hurwitz), the gain K, and a ``status`` (:class:`RiccatiStatus`) that says, under
+``jit`` too, when X is not to be trusted. A stabilising solution exists if and only if every
+mode of A outside or on the stability boundary is controllable through B and no mode *on* the
+boundary is unobservable through Q (R > 0, Q >= 0); an unobservable mode strictly outside is
+allowed (F = 2, H = 1, Q = 0: Sigma = 3, where the Kalman filter converges). When the arguments
+are concrete these conditions are checked first and a ``ValueError`` names the mode and the
+arguments; under ``jit`` the status carries ``NOT_STABILISING`` instead.
+
+Forward solver, in two stages:
+
+1. a start: the structured doubling algorithm (SDA) for the DARE, the matrix sign function of the
+   Hamiltonian for the CARE, both on Q + delta I with delta = sqrt(eps) (|Q| + 1 / |B R^-1 B^T|),
+   which makes (Q, A) observable so that they converge whenever (A, B) is stabilisable; their
+   gain is stabilising for the true Q too, but B R^-1 B^T (formed from the Cholesky factor of R)
+   costs them cond(R) eps of accuracy;
+2. Newton's method (Hewer's for the DARE, Kleinman's for the CARE) in correction form: with K
+   the gain of X and A_c = A - B K, the correction N solves A_c^T N A_c - N + res(X) = 0, resp.
+   A_c^T N + N A_c + res(X) = 0. The DARE residual is evaluated with R + B^T X B (never R^-1),
+   the CARE's with L^-1 B^T X (L the Cholesky factor of R), so the answer is accurate to a small
+   multiple of the equation's own conditioning even for cond(R) ~ 1e12. Newton converges
+   quadratically from a stabilising start; it stops once the correction is at rounding level or
+   stops shrinking.
+
+The status check: ``NONFINITE``; ``NOT_STABILISING`` when the closed loop's decay margin
+(1 - rho(A_c), resp. -max Re lambda(A_c) / |A_c|) is below 10 sqrt(eps) -- where no stabilising
+solution exists, Newton stalls with a closed-loop mode within about sqrt(eps) of the boundary;
+``INACCURATE`` when Newton did not converge or the residual is above sqrt(eps) relative to the
+equation's terms.
+
+Gradients (reverse mode) come from implicit differentiation: the derivative dX of either
+equation solves a Stein (discrete) or Lyapunov (continuous) equation in A_c, so the cotangent
+needs one adjoint solve, A_c Y A_c^T - Y + Xbar = 0 resp. A_c Y + Y A_c^T + Xbar = 0, after
+which Qbar = Y, Rbar = K Y K^T, Abar = 2 X A_c Y (discrete) or 2 X Y (continuous) and
+Bbar = -Abar K^T. The status, residual and margin carry no gradient.
 """
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_matrix, is_concrete
-from jaxest.linalg import symmetrize
+from jaxest._status import Status, status_where
+from jaxest.linalg import cho_solve_lower, cholesky, solve_triangular, symmetrize
 
 _MAX_ITERATIONS = 100
+#: Newton steps at most: enough to walk from the regularised start down to rounding level in
+#: the linearly convergent case of a mode on the boundary
+_MAX_NEWTON = 50
+#: squarings of the closed loop in :func:`_log_spectral_radius` (powers up to 2^40)
+_SQUARINGS = 40
+#: a closed-loop margin below MARGIN_FACTOR sqrt(eps) is reported as not stabilising
+MARGIN_FACTOR = 10.0
+
+#: the Riccati solvers' status flags: the core's and their own
+RiccatiStatus = Status.extend(
+    "RiccatiStatus",
+    NOT_STABILISING=(
+        64,
+        "the closed loop A - B K is not stable (within 10 sqrt(eps)): no stabilising solution "
+        "exists -- a mode of A outside the stability region is not controllable through B, or "
+        "a mode on its boundary is not observable through Q; call the solver with concrete "
+        "arguments to have the mode named",
+    ),
+    INACCURATE=(
+        128,
+        "Newton's refinement did not converge or the Riccati residual is above sqrt(eps) "
+        "relative to the equation's terms: the equation is too ill-conditioned for this "
+        "precision; use float64 or rescale the states",
+    ),
+)
 
 
+class RiccatiSolution(eqx.Module):
+    """The solution of an algebraic Riccati equation and how far to trust it.
+
+    ``X`` the stabilising solution; ``K`` its gain (control forms: u = -K x with closed loop
+    A - B K; filter forms: the gain with closed loop F - K H); ``status`` the
+    :class:`RiccatiStatus` bits (0 = OK); ``residual`` the residual's largest entry relative to
+    the largest of the equation's terms; ``margin`` the closed loop's decay margin,
+    -log rho(A - B K) ~ 1 - rho (discrete) or -max Re lambda(A - B K) / |A - B K| (continuous),
+    negative when it is unstable.
+    """
+
+    flags = RiccatiStatus
+
+    X: Float[Array, "n n"]
+    K: Float[Array, "m n"]
+    status: Int[Array, ""]
+    residual: Float[Array, ""]
+    margin: Float[Array, ""]
+
+    @property
+    def ok(self) -> jax.Array:
+        """True where the status is OK."""
+        return self.status == 0
+
+
+# --------------------------------------------------------------------------- iterations
 def _converge(update, start, size):
     """Iterate ``update(carry) -> (carry, relative_change)`` from ``start`` with a quadratically
     convergent method: stop two iterations after the change first drops below sqrt(eps) (by then
-    it is at rounding level), after ``_MAX_ITERATIONS`` or once the change is not finite."""
+    it is at rounding level), after ``_MAX_ITERATIONS`` or once the change is not finite.
+    Returns (carry, converged)."""
     tol = jnp.sqrt(jnp.finfo(size.dtype).eps)
 
     def cond(state):
@@ -54,8 +133,8 @@ def _converge(update, start, size):
         return carry, change, k + 1, extra
 
     one = jnp.ones((), size.dtype)
-    final, *_ = jax.lax.while_loop(cond, body, (start, one, 0, 0))
-    return final
+    final, change, _, extra = jax.lax.while_loop(cond, body, (start, one, 0, 0))
+    return final, (extra >= 2) & jnp.isfinite(change)
 
 
 def _relative_change(new, old):
@@ -63,44 +142,155 @@ def _relative_change(new, old):
     return jnp.max(jnp.abs(new - old)) / scale
 
 
+def _newton(step, X0):
+    """Newton's method ``step(X) -> (X_new, solved)`` from X0, keeping the last X whose step
+    solved. Stops when the relative correction is below eps, when it is below sqrt(eps) but no
+    longer shrinks by a quarter (rounding level: quadratic convergence would have dropped it to
+    eps), when a step's linear solve fails, or after ``_MAX_NEWTON`` steps. A stabilising
+    solution on the stability boundary makes Newton converge only linearly (the correction
+    halves each step); it then goes on to rounding level, which leaves the closed-loop mode
+    within about sqrt(eps) of the boundary for the status check.
+    Returns (X, converged): converged when the last accepted correction was below sqrt(eps)."""
+    eps = jnp.finfo(X0.dtype).eps
+    tol = jnp.sqrt(eps)
+
+    def cond(state):
+        _, _, k, done = state
+        return (k < _MAX_NEWTON) & ~done
+
+    def body(state):
+        X, change, k, _ = state
+        X_new, solved = step(X)
+        new_change = _relative_change(X_new, X)
+        accept = solved & jnp.isfinite(new_change)
+        stalled = (new_change <= tol) & (new_change > 0.75 * change)
+        done = ~accept | (new_change <= eps) | stalled
+        return (
+            jnp.where(accept, X_new, X),
+            jnp.where(accept, new_change, change),
+            k + 1,
+            done,
+        )
+
+    inf = jnp.full((), jnp.inf, X0.dtype)
+    X, change, _, _ = jax.lax.while_loop(cond, body, (X0, inf, 0, jnp.zeros((), bool)))
+    return X, change <= tol
+
+
 # --------------------------------------------------------------------------- Stein / Lyapunov
-@jax.jit
-def _solve_stein(T, C):
+def _stein(T, C):
     """Y = T Y T^T + C for Schur-stable T, by squared Smith doubling:
-    Y_{j+1} = Y_j + T_j Y_j T_j^T, T_{j+1} = T_j^2 (Y_j sums the first 2^j terms)."""
+    Y_{j+1} = Y_j + T_j Y_j T_j^T, T_{j+1} = T_j^2 (Y_j sums the first 2^j terms).
+    Returns (Y, converged)."""
 
     def update(carry):
         Y, Tj = carry
         Y_new = Y + Tj @ Y @ Tj.T
         return (Y_new, Tj @ Tj), _relative_change(Y_new, Y)
 
-    Y, _ = _converge(update, (C, T), C)
-    return Y
+    (Y, _), converged = _converge(update, (C, T), C)
+    return Y, converged
 
 
-@jax.jit
-def _solve_lyapunov(Ac, C):
+def _lyapunov(Ac, C):
     """Y with Ac Y + Y Ac^T + C = 0 for Hurwitz Ac, through the Cayley transform
     T = (Ac - g I)^{-1} (Ac + g I), which maps it to the Stein equation
-    Y = T Y T^T + 2 g (Ac - g I)^{-1} C (Ac - g I)^{-T}."""
+    Y = T Y T^T + 2 g (Ac - g I)^{-1} C (Ac - g I)^{-T}. Returns (Y, converged)."""
     n = Ac.shape[-1]
     eye = jnp.eye(n, dtype=Ac.dtype)
     g = jnp.maximum(jnp.linalg.norm(Ac) / jnp.sqrt(n), jnp.finfo(Ac.dtype).tiny)
     shifted = jax.scipy.linalg.lu_factor(Ac - g * eye)  # one factorisation, three solves
     T = jax.scipy.linalg.lu_solve(shifted, Ac + g * eye)
     M = jax.scipy.linalg.lu_solve(shifted, C)
-    return _solve_stein(T, 2 * g * jax.scipy.linalg.lu_solve(shifted, M.T).T)
+    return _stein(T, 2 * g * jax.scipy.linalg.lu_solve(shifted, M.T).T)
+
+
+@jax.jit
+def _solve_stein(T, C):
+    return _stein(T, C)[0]
+
+
+@jax.jit
+def _solve_lyapunov(Ac, C):
+    return _lyapunov(Ac, C)[0]
+
+
+def _log_spectral_radius(T):
+    """log rho(T) as log |T^(2^J)| / 2^J after J = ``_SQUARINGS`` squarings, each normalised by
+    its largest entry (whose logarithms are summed), so nothing overflows; the transient
+    factor of a non-normal T contributes log(kappa) / 2^J, i.e. nothing."""
+    tiny = jnp.finfo(T.dtype).tiny
+
+    def body(_, carry):
+        Tj, log_scale = carry
+        square = Tj @ Tj
+        s = jnp.maximum(jnp.max(jnp.abs(square)), tiny)
+        return square / s, 2 * log_scale + jnp.log(s)
+
+    s0 = jnp.maximum(jnp.max(jnp.abs(T)), tiny)
+    _, log_scale = jax.lax.fori_loop(0, _SQUARINGS, body, (T / s0, jnp.log(s0)))
+    return log_scale / 2.0**_SQUARINGS
+
+
+# --------------------------------------------------------------------------- shared pieces
+def _input_gramian_factor(B, R):
+    """L^-1 B^T with L the Cholesky factor of R, so B R^-1 B^T = its Gram matrix."""
+    return solve_triangular(cholesky(R), B.T, lower=True)
+
+
+def _regularised(Q, G):
+    """Q + delta I with delta = sqrt(eps) (|Q| + 1 / |G|): (Q + delta I, A) is observable, so the
+    starting iterations converge whenever (A, B) is stabilisable; Newton removes delta."""
+    n = Q.shape[-1]
+    eps = jnp.finfo(Q.dtype).eps
+    g = jnp.max(jnp.abs(G))
+    inverse_g = jnp.where(g > 0, 1 / jnp.where(g > 0, g, 1), 0)
+    delta = jnp.sqrt(eps) * (jnp.max(jnp.abs(Q)) + inverse_g)
+    return Q + delta * jnp.eye(n, dtype=Q.dtype)
+
+
+def _dare_terms(A, B, Q, R, X):
+    """(K, A_c, residual, scale) at X: K = (R + B^T X B)^-1 B^T X A (no R^-1), A_c = A - B K
+    and the residual in closed-loop form Q + A_c^T X A_c + K^T R K - X, which differs from the
+    DARE's by (K - K*)^T (R + B^T X B) (K - K*) only (second order in the error of K; measured
+    more accurate than the DARE's own form). ``scale`` = |Q| + (|A_c|^2 + 1) |X| + |K|^2 |R|
+    (Frobenius norms): the size of the terms and of the derivative N -> A_c^T N A_c - N at X."""
+    BtX = B.T @ X
+    K = cho_solve_lower(cholesky(symmetrize(R + BtX @ B)), BtX @ A)
+    Ac = A - B @ K
+    residual = symmetrize(Q + Ac.T @ X @ Ac + K.T @ R @ K - X)
+    norm = jnp.linalg.norm
+    scale = norm(Q) + (norm(Ac) ** 2 + 1) * norm(X) + norm(K) ** 2 * norm(R)
+    return K, Ac, residual, scale
+
+
+def _care_terms(A, B, Q, R, X):
+    """(K, A_c, residual, scale) at X: with V = L^-1 B^T X (L L^T = R), K = L^-T V,
+    A_c = A - B K and the residual Q + A^T X + X A - V^T V (measured more accurate than the
+    closed-loop form, whose A_c is large when R is nearly singular). ``scale`` =
+    |Q| + 2 |A_c| |X| + |V|^2 (Frobenius norms): the size of the terms and of the derivative
+    N -> A_c^T N + N A_c at X -- an X off by eps |X| along a fast closed-loop mode leaves a
+    residual of |A_c| eps |X|."""
+    L = cholesky(R)
+    V = solve_triangular(L, B.T @ X, lower=True)
+    K = solve_triangular(L.T, V, lower=False)
+    XA = X @ A
+    residual = symmetrize(Q + XA + XA.T - V.T @ V)
+    norm = jnp.linalg.norm
+    Ac = A - B @ K
+    return K, Ac, residual, norm(Q) + 2 * norm(Ac) * norm(X) + norm(V) ** 2
 
 
 # --------------------------------------------------------------------------- forward solvers
-@jax.jit
-def _dare_sda(A, B, Q, R):
-    """Structured doubling: A_0 = A, G_0 = B R^-1 B^T, H_0 = Q; with W = I + G_k H_k,
-    A_{k+1} = A_k W^-1 A_k, G_{k+1} = G_k + A_k W^-1 G_k A_k^T, H_{k+1} = H_k + A_k^T H_k W^-1 A_k;
-    H_k converges quadratically to the stabilising X."""
+def _dare_start(A, B, Q, R):
+    """Structured doubling on Q + delta I: A_0 = A, G_0 = B R^-1 B^T, H_0 = Q + delta I; with
+    W = I + G_k H_k, A_{k+1} = A_k W^-1 A_k, G_{k+1} = G_k + A_k W^-1 G_k A_k^T,
+    H_{k+1} = H_k + A_k^T H_k W^-1 A_k; H_k converges quadratically to the stabilising X."""
     n = A.shape[-1]
     eye = jnp.eye(n, dtype=A.dtype)
-    G = symmetrize(B @ jnp.linalg.solve(R, B.T))
+    V = _input_gramian_factor(B, R)
+    G = V.T @ V
+    H0 = _regularised(symmetrize(Q), G)
 
     def update(carry):
         Ak, Gk, Hk = carry
@@ -110,18 +300,33 @@ def _dare_sda(A, B, Q, R):
         new = (Ak @ WA, symmetrize(Gk + Ak @ WG @ Ak.T), H_new)
         return new, _relative_change(H_new, Hk)
 
-    _, _, X = _converge(update, (A, G, symmetrize(Q)), Q)
+    (_, _, X), _ = _converge(update, (A, G, H0), Q)
     return X
 
 
 @jax.jit
-def _care_sign(A, B, Q, R):
-    """Matrix sign function of the Hamiltonian Z = [[A, -G], [-Q, -A^T]] (G = B R^-1 B^T) by the
-    determinant-scaled Newton iteration Z <- (c Z + (c Z)^-1) / 2; the stable invariant subspace
-    [I; X] is the null space of sign(Z) + I, so [[W12], [W22 + I]] X = -[[W11 + I], [W21]]."""
+def _dare_solve(A, B, Q, R):
+    """The stabilising DARE solution: SDA start, then Hewer's Newton steps in correction form,
+    A_c^T N A_c - N + res(X) = 0. Returns (X, converged)."""
+    Q = symmetrize(Q)
+
+    def step(X):
+        _, Ac, residual, _ = _dare_terms(A, B, Q, R, X)
+        N, solved = _stein(Ac.T, residual)
+        return symmetrize(X + N), solved
+
+    return _newton(step, _dare_start(A, B, Q, R))
+
+
+def _care_start(A, B, Q, R):
+    """Matrix sign function of the Hamiltonian Z = [[A, -G], [-Q - delta I, -A^T]]
+    (G = B R^-1 B^T) by the determinant-scaled Newton iteration Z <- (c Z + (c Z)^-1) / 2; the
+    stable invariant subspace [I; X] is the null space of sign(Z) + I, so
+    [[W12], [W22 + I]] X = -[[W11 + I], [W21]]."""
     n = A.shape[-1]
-    G = B @ jnp.linalg.solve(R, B.T)
-    Z = jnp.block([[A, -G], [-Q, -A.T]])
+    V = _input_gramian_factor(B, R)
+    G = V.T @ V
+    Z = jnp.block([[A, -G], [-_regularised(symmetrize(Q), G), -A.T]])
 
     def update(Zk):
         _, logdet = jnp.linalg.slogdet(Zk)
@@ -129,27 +334,41 @@ def _care_sign(A, B, Q, R):
         Z_new = 0.5 * (c * Zk + jnp.linalg.inv(Zk) / c)
         return Z_new, _relative_change(Z_new, Zk)
 
-    W = _converge(update, Z, Q)
+    W, _ = _converge(update, Z, Q)
     eye = jnp.eye(n, dtype=A.dtype)
     lhs = jnp.concatenate([W[:n, n:], W[n:, n:] + eye])
     rhs = -jnp.concatenate([W[:n, :n] + eye, W[n:, :n]])
-    X = jnp.linalg.lstsq(lhs, rhs)[0]
-    return symmetrize(X)
+    return symmetrize(jnp.linalg.lstsq(lhs, rhs)[0])
+
+
+@jax.jit
+def _care_solve(A, B, Q, R):
+    """The stabilising CARE solution: sign-function start, then Kleinman's Newton steps in
+    correction form, A_c^T N + N A_c + res(X) = 0. Returns (X, converged)."""
+    Q = symmetrize(Q)
+
+    def step(X):
+        _, Ac, residual, _ = _care_terms(A, B, Q, R, X)
+        N, solved = _lyapunov(Ac.T, residual)
+        return symmetrize(X + N), solved
+
+    return _newton(step, _care_start(A, B, Q, R))
 
 
 # --------------------------------------------------------------------------- implicit gradients
 @jax.custom_vjp
 def _dare(A, B, Q, R):
-    return _dare_sda(A, B, Q, R)
+    return _dare_solve(A, B, Q, R)
 
 
 def _dare_fwd(A, B, Q, R):
-    X = _dare_sda(A, B, Q, R)
-    return X, (A, B, R, X)
+    X, converged = _dare_solve(A, B, Q, R)
+    return (X, converged), (A, B, R, X)
 
 
-def _dare_bwd(residuals, Xbar):
+def _dare_bwd(residuals, cotangents):
     A, B, R, X = residuals
+    Xbar, _ = cotangents
     K = jnp.linalg.solve(R + B.T @ X @ B, B.T @ X @ A)
     Ac = A - B @ K
     Y = _solve_stein(Ac, symmetrize(Xbar))
@@ -162,17 +381,18 @@ _dare.defvjp(_dare_fwd, _dare_bwd)
 
 @jax.custom_vjp
 def _care(A, B, Q, R):
-    return _care_sign(A, B, Q, R)
+    return _care_solve(A, B, Q, R)
 
 
 def _care_fwd(A, B, Q, R):
-    X = _care_sign(A, B, Q, R)
-    return X, (A, B, R, X)
+    X, converged = _care_solve(A, B, Q, R)
+    return (X, converged), (A, B, R, X)
 
 
-def _care_bwd(residuals, Xbar):
+def _care_bwd(residuals, cotangents):
     A, B, R, X = residuals
-    K = jnp.linalg.solve(R, B.T @ X)
+    Xbar, _ = cotangents
+    K = cho_solve_lower(cholesky(R), B.T @ X)
     Y = _solve_lyapunov(A - B @ K, symmetrize(Xbar))
     Abar = 2 * X @ Y
     return Abar, -Abar @ K.T, Y, K @ Y @ K.T
@@ -181,74 +401,153 @@ def _care_bwd(residuals, Xbar):
 _care.defvjp(_care_fwd, _care_bwd)
 
 
+# --------------------------------------------------------------------------- status
+def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
+    """X with its gain and status (module docstring: the status check)."""
+    terms = _dare_terms if discrete else _care_terms
+    K = terms(A, B, Q, R, X)[0]  # differentiable through X
+    _, Ac, residual, scale = terms(*jax.lax.stop_gradient((A, B, Q, R, X)))
+    eps = jnp.finfo(X.dtype).eps
+    relative = jnp.linalg.norm(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
+    if discrete:
+        margin = -_log_spectral_radius(Ac)
+    else:
+        norm = jnp.maximum(jnp.max(jnp.abs(Ac)), jnp.finfo(X.dtype).tiny)
+        margin = -_log_spectral_radius(jax.scipy.linalg.expm(Ac / norm))
+    finite = jnp.all(jnp.isfinite(X)) & jnp.all(jnp.isfinite(K))
+    status = (
+        status_where(~finite, RiccatiStatus.NONFINITE)
+        | status_where(~(margin > MARGIN_FACTOR * jnp.sqrt(eps)), RiccatiStatus.NOT_STABILISING)
+        | status_where(~converged | ~(relative <= jnp.sqrt(eps)), RiccatiStatus.INACCURATE)
+    )
+    return RiccatiSolution(X, K, status, relative, margin)
+
+
 # --------------------------------------------------------------------------- argument checks
-def _check_arguments(A, B, Q, R, *, discrete: bool):
-    """Shapes always; symmetry, definiteness, stabilisability and the boundary-mode condition when
-    the values are concrete. Returns the arrays in one floating dtype."""
-    for name, value in (("A", A), ("B", B), ("Q", Q), ("R", R)):
+#: the eager checks' wording: control form (A, B, Q) and filter form (F, H, Q)
+_CONTROL = {
+    "names": ("A", "B", "Q", "R"),
+    "unstabilisable": "(A, B): not stabilisable: the mode {lam} of A ({where}) is not "
+    "controllable through B",
+    "boundary": "(Q, A): no stabilising solution: the mode {lam} of A (on {boundary}) is not "
+    "observable through Q",
+}
+_FILTER = {
+    "names": ("F", "H", "Q", "R"),
+    "unstabilisable": "(F, H): not detectable: the mode {lam} of F ({where}) is not observable "
+    "through H",
+    "boundary": "(F, Q): no stabilising solution: the mode {lam} of F (on {boundary}) is not "
+    "excited by the process noise Q (not controllable through it)",
+}
+
+
+def _check_arguments(A, B, Q, R, *, discrete: bool, wording=_CONTROL):
+    """Shapes always; symmetry, definiteness and the existence of a stabilising solution when
+    the values are concrete. Filter wording: (A, B) are the user's (F, H), transposed here.
+    Returns the control-form arrays in one floating dtype."""
+    names = wording["names"]
+    for name, value in zip(names, (A, B, Q, R), strict=True):
         if np.ndim(value) != 2:
             raise ValueError(f"{name}: expected a matrix, got shape {np.shape(value)}")
-    n, m = np.shape(B)
-    check_matrix("A", A, (n, n))
-    check_matrix("Q", Q, (n, n), psd=True)
-    check_matrix("R", R, (m, m), spd=True)
+    filter_form = wording is _FILTER
+    m, n = np.shape(B) if filter_form else np.shape(B)[::-1]
+    check_matrix(names[0], A, (n, n))
+    check_matrix(names[2], Q, (n, n), psd=True)
+    check_matrix(names[3], R, (m, m), spd=True)
     dtype = jnp.result_type(A, B, Q, R, jnp.zeros((), jnp.float32))
     A, B, Q, R = (jnp.asarray(v, dtype) for v in (A, B, Q, R))
+    if filter_form:
+        A, B = A.T, B.T
     if all(is_concrete(v) for v in (A, B, Q)):
         _check_modes(
             np.asarray(A, np.float64),
             np.asarray(B, np.float64),
             np.asarray(Q, np.float64),
             discrete,
+            wording,
+            max(1e-9, 100 * float(jnp.finfo(dtype).eps)),
         )
     return A, B, Q, R
 
 
-def _check_modes(A, B, Q, discrete):
-    """PBH tests on the modes of A outside the stability region (|lambda| >= 1, resp.
-    Re lambda >= 0): each must be controllable through B and observable through Q."""
+def _check_modes(A, B, Q, discrete, wording, tol):
+    """PBH tests: every mode of A outside or on the stability boundary (|lambda| >= 1, resp.
+    Re lambda >= 0) must be controllable through B, and every mode on it observable through Q.
+    ``tol`` (relative) is the boundary's width and the rank tolerance: 1e-9, or 100 eps of the
+    arguments' dtype (float32 data put a mode on the unit circle only to within its rounding)."""
     n = A.shape[0]
     scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(B, 2), np.linalg.norm(Q, 2))
-    tol = 1e-9 * scale
     where = "|lambda| >= 1" if discrete else "Re lambda >= 0"
+    boundary = "the unit circle" if discrete else "the imaginary axis"
     for lam in np.linalg.eigvals(A):
-        if (abs(lam) - 1.0 if discrete else lam.real) < -1e-9:
+        distance = abs(lam) - 1.0 if discrete else lam.real
+        if distance < -tol:
             continue
         shifted = A - lam * np.eye(n)
-        if np.linalg.svd(np.hstack([shifted, B]), compute_uv=False)[-1] <= tol:
-            raise ValueError(
-                f"(A, B): not stabilisable: the mode {lam:.6g} of A ({where}) is not controllable "
-                "through B"
-            )
-        if np.linalg.svd(np.vstack([shifted, Q]), compute_uv=False)[-1] <= tol:
-            raise ValueError(
-                f"(Q, A): not detectable: the mode {lam:.6g} of A ({where}) is not observable "
-                "through Q"
-            )
+        if np.linalg.svd(np.hstack([shifted, B]), compute_uv=False)[-1] <= tol * scale:
+            raise ValueError(wording["unstabilisable"].format(lam=f"{lam:.6g}", where=where))
+        on_boundary = distance <= tol
+        if on_boundary and np.linalg.svd(np.vstack([shifted, Q]), compute_uv=False)[-1] <= tol * scale:
+            raise ValueError(wording["boundary"].format(lam=f"{lam:.6g}", boundary=boundary))
 
 
 # --------------------------------------------------------------------------- public API
 def solve_dare(
     A: Float[Array, "n n"], B: Float[Array, "n m"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
-) -> Float[Array, "n n"]:
+) -> RiccatiSolution:
     """Stabilising solution X of X = A^T X A - A^T X B (R + B^T X B)^{-1} B^T X A + Q
-    (scipy.linalg.solve_discrete_are's convention; filter form: ``solve_dare(F.T, H.T, GQG^T, R)``
-    gives the steady-state prediction covariance, eq 5). Q symmetric PSD, R symmetric PD."""
-    return _dare(*_check_arguments(A, B, Q, R, discrete=True))
+    (scipy.linalg.solve_discrete_are's convention), with K = (R + B^T X B)^{-1} B^T X A.
+    Q symmetric PSD, R symmetric PD."""
+    A, B, Q, R = _check_arguments(A, B, Q, R, discrete=True)
+    X, converged = _dare(A, B, Q, R)
+    return _solution(A, B, Q, R, X, converged, discrete=True)
 
 
 def solve_care(
     A: Float[Array, "n n"], B: Float[Array, "n m"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
-) -> Float[Array, "n n"]:
+) -> RiccatiSolution:
     """Stabilising solution X of A^T X + X A - X B R^{-1} B^T X + Q = 0
-    (scipy.linalg.solve_continuous_are's convention). Q symmetric PSD, R symmetric PD."""
-    return _care(*_check_arguments(A, B, Q, R, discrete=False))
+    (scipy.linalg.solve_continuous_are's convention), with K = R^{-1} B^T X.
+    Q symmetric PSD, R symmetric PD."""
+    A, B, Q, R = _check_arguments(A, B, Q, R, discrete=False)
+    X, converged = _care(A, B, Q, R)
+    return _solution(A, B, Q, R, X, converged, discrete=False)
+
+
+def _transposed_gain(solution: RiccatiSolution) -> RiccatiSolution:
+    return RiccatiSolution(
+        solution.X, solution.K.T, solution.status, solution.residual, solution.margin
+    )
+
+
+def solve_filter_dare(
+    F: Float[Array, "n n"], H: Float[Array, "m n"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
+) -> RiccatiSolution:
+    """Steady-state prediction covariance Sigma = F Sigma F^T - F Sigma H^T (H Sigma H^T + R)^{-1}
+    H Sigma F^T + Q of x(t+1) = F x(t) + w, y = H x + v (eq 5 of the Wiener-smoother paper, Q the
+    covariance of w), stabilising: F - K H is Schur with K = F Sigma H^T (H Sigma H^T + R)^{-1},
+    the one-step predictor gain. It exists when every mode of F with |lambda| >= 1 is
+    observable through H and none on the unit circle is unexcited by Q."""
+    A, B, Q, R = _check_arguments(F, H, Q, R, discrete=True, wording=_FILTER)
+    X, converged = _dare(A, B, Q, R)
+    return _transposed_gain(_solution(A, B, Q, R, X, converged, discrete=True))
+
+
+def solve_filter_care(
+    F: Float[Array, "n n"], H: Float[Array, "m n"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
+) -> RiccatiSolution:
+    """Steady-state Kalman-Bucy covariance: F Sigma + Sigma F^T - Sigma H^T R^{-1} H Sigma + Q = 0
+    for dx/dt = F x + w, y = H x + v, stabilising: F - K H is Hurwitz with K = Sigma H^T R^{-1}."""
+    A, B, Q, R = _check_arguments(F, H, Q, R, discrete=False, wording=_FILTER)
+    X, converged = _care(A, B, Q, R)
+    return _transposed_gain(_solution(A, B, Q, R, X, converged, discrete=False))
 
 
 def lqr_gain(
     A: Float[Array, "n n"], B: Float[Array, "n m"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
 ) -> Float[Array, "m n"]:
-    """Continuous-time LQR gain K = R^{-1} B^T X with X = ``solve_care(A, B, Q, R)``: the control
-    u = -K x minimises the integral of x^T Q x + u^T R u subject to dx/dt = A x + B u."""
-    A, B, Q, R = _check_arguments(A, B, Q, R, discrete=False)
-    return jnp.linalg.solve(R, B.T @ _care(A, B, Q, R))
+    """Continuous-time LQR gain K = R^{-1} B^T X with X = ``solve_care(A, B, Q, R).X``: the
+    control u = -K x minimises the integral of x^T Q x + u^T R u subject to dx/dt = A x + B u.
+    NaN where the solution's status is not OK (use :func:`solve_care` to see the status)."""
+    solution = solve_care(A, B, Q, R)
+    return jnp.where(solution.ok, solution.K, jnp.nan)

@@ -1,4 +1,5 @@
-"""Riccati solvers against scipy, under jit/vmap/grad, gradients against finite differences."""
+"""Riccati solvers against scipy and exact rational arithmetic, under jit/vmap/grad, gradients
+against finite differences, and the status of problems without a stabilising solution."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +8,15 @@ import pytest
 import scipy.linalg as sl
 from jax import enable_x64
 
-from jaxest.riccati import lqr_gain, solve_care, solve_dare
+from jaxest.riccati import (
+    RiccatiStatus,
+    lqr_gain,
+    solve_care,
+    solve_dare,
+    solve_filter_care,
+    solve_filter_dare,
+)
+from tests.exact_riccati import exact_care, exact_dare
 
 
 def random_problem(seed, n, m):
@@ -27,8 +36,10 @@ SIZES = [(1, 1), (3, 2), (8, 3)]
 def test_dare_matches_scipy(n, m):
     with enable_x64(True):
         A, B, Q, R = random_problem(n + m, n, m)
-        X = np.asarray(solve_dare(A, B, Q, R))
+        solution = solve_dare(A, B, Q, R)
+        X = np.asarray(solution.X)
         ref = sl.solve_discrete_are(A, B, Q, R)
+        assert int(solution.status) == RiccatiStatus.OK
         np.testing.assert_allclose(X, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
         residual = A.T @ X @ A - A.T @ X @ B @ np.linalg.solve(R + B.T @ X @ B, B.T @ X @ A) + Q - X
         assert np.abs(residual).max() < 1e-9 * np.abs(X).max()
@@ -38,8 +49,10 @@ def test_dare_matches_scipy(n, m):
 def test_care_matches_scipy(n, m):
     with enable_x64(True):
         A, B, Q, R = random_problem(n + m, n, m)
-        X = np.asarray(solve_care(A, B, Q, R))
+        solution = solve_care(A, B, Q, R)
+        X = np.asarray(solution.X)
         ref = sl.solve_continuous_are(A, B, Q, R)
+        assert int(solution.status) == RiccatiStatus.OK
         np.testing.assert_allclose(X, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
         K = np.asarray(lqr_gain(A, B, Q, R))
         np.testing.assert_allclose(K, np.linalg.solve(R, B.T @ ref), rtol=1e-8, atol=1e-9)
@@ -50,8 +63,9 @@ def test_float32_stays_float32_and_is_accurate():
     A, B, Q, R = random_problem(3, 3, 1)
     A32, B32, Q32, R32 = (np.float32(v) for v in (A, B, Q, R))
     for solve, ref in ((solve_dare, sl.solve_discrete_are), (solve_care, sl.solve_continuous_are)):
-        X = solve(A32, B32, Q32, R32)
-        assert X.dtype == jnp.float32
+        solution = solve(A32, B32, Q32, R32)
+        X = solution.X
+        assert X.dtype == jnp.float32 and int(solution.status) == RiccatiStatus.OK
         np.testing.assert_allclose(X, ref(A, B, Q, R), rtol=2e-4, atol=2e-4)
 
 
@@ -61,8 +75,9 @@ def test_paper_filter_riccati_eq5():
         Phi = np.array([[0.2, 0.1], [0.0, 1.0]])
         Gamma = np.array([[1.0], [1.0]])
         H = np.array([[1.0, 0.0]])
-        Sigma = solve_dare(Phi.T, H.T, Gamma @ Gamma.T, np.eye(1))
+        Sigma = solve_dare(Phi.T, H.T, Gamma @ Gamma.T, np.eye(1)).X
         np.testing.assert_allclose(Sigma, [[1.078811, 1.441808], [1.441808, 4.030933]], atol=5e-7)
+        np.testing.assert_array_equal(solve_filter_dare(Phi, H, Gamma @ Gamma.T, np.eye(1)).X, Sigma)
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
@@ -74,15 +89,17 @@ def test_jit_and_vmap(dtype):
             (solve_dare, sl.solve_discrete_are),
             (solve_care, sl.solve_continuous_are),
         ):
-            X = jax.jit(jax.vmap(solve))(A, B, Q, R)
+            solution = jax.jit(jax.vmap(solve))(A, B, Q, R)
+            X = solution.X
             assert X.dtype == jnp.dtype(dtype)
+            np.testing.assert_array_equal(solution.status, 0)
             tol = 1e-9 if dtype == "float64" else 1e-3
             for i, p in enumerate(problems):
                 np.testing.assert_allclose(X[i], ref(*p), rtol=tol, atol=tol)
 
 
 def _loss(solve, weights):
-    return jax.jit(lambda A, B, Q, R: jnp.sum(weights * solve(A, B, Q, R)))
+    return jax.jit(lambda A, B, Q, R: jnp.sum(weights * solve(A, B, Q, R).X))
 
 
 @pytest.mark.parametrize("solve", [solve_dare, solve_care], ids=["dare", "care"])
@@ -127,33 +144,149 @@ def test_lqr_gain_gradient_through_the_gain():
         np.testing.assert_allclose(np.sum(g * d), fd, rtol=1e-6)
 
 
-def test_not_stabilisable_raises():
-    A = np.diag([2.0, 0.5])
-    B = np.array([[0.0], [1.0]])  # the unstable mode 2 is not reachable
-    with pytest.raises(ValueError, match="not stabilisable"):
-        solve_dare(A, B, np.eye(2), np.eye(1))
-    with pytest.raises(ValueError, match="not stabilisable"):
-        solve_care(A, B, np.eye(2), np.eye(1))
+def issue_problem(small_eigenvalue):
+    """The ill-conditioned R of the issue: R = U diag(1, small) U^T, U a rotation by 0.5 rad."""
+    A = np.array([[1.1, 0.3], [0.0, 0.8]])
+    B = np.array([[1.0, 0.0], [0.5, 1.0]])
+    c, s = np.cos(0.5), np.sin(0.5)
+    U = np.array([[c, -s], [s, c]])
+    return A, B, np.eye(2), U @ np.diag([1.0, small_eigenvalue]) @ U.T
 
 
-def test_not_detectable_raises():
-    B = np.array([[1.0], [1.0]])
-    Q = np.diag([0.0, 1.0])  # the first mode is invisible to Q
-    with pytest.raises(ValueError, match="not detectable"):
-        solve_dare(np.diag([1.0, 0.5]), B, Q, np.eye(1))  # ... and on the unit circle
-    with pytest.raises(ValueError, match="not detectable"):
-        solve_care(np.diag([0.0, -1.0]), B, Q, np.eye(1))  # ... and on the imaginary axis
-    with pytest.raises(ValueError, match="not detectable"):
-        solve_dare(np.diag([2.0, 0.5]), B, Q, np.eye(1))  # ... and unstable
+@pytest.mark.parametrize("small_eigenvalue", [1e-10, 1e-12], ids=["cond1e10", "cond1e12"])
+@pytest.mark.parametrize(
+    "solve,scipy_solve,exact",
+    [
+        (solve_dare, sl.solve_discrete_are, exact_dare),
+        (solve_care, sl.solve_continuous_are, exact_care),
+    ],
+    ids=["dare", "care"],
+)
+def test_ill_conditioned_R_against_exact_arithmetic(solve, scipy_solve, exact, small_eigenvalue):
+    """cond(R) = 1e10 and 1e12: within 10x scipy's error of the exact solution of the stated
+    floats (forming B R^-1 B^T cost 2e-9 (DARE) and 6e-8 (CARE) at 1e10)."""
+    with enable_x64(True):
+        problem = issue_problem(small_eigenvalue)
+        reference = scipy_solve(*problem)
+        X_exact, residual = exact(*problem, reference)
+        assert residual < 1e-90
+        solution = solve(*problem)
+        assert int(solution.status) == RiccatiStatus.OK
+        scipy_error = np.abs(reference - X_exact).max()
+        floor = np.finfo(np.float64).eps * np.abs(X_exact).max()
+        assert np.abs(np.asarray(solution.X) - X_exact).max() <= 10 * max(scipy_error, floor)
+
+
+def test_status_fields_against_numpy():
+    """The residual is at rounding level and the margin is -log of the closed loop's spectral
+    radius (DARE) or -max Re lambda / |A_c| (CARE), both computed here from eigvals."""
+    with enable_x64(True):
+        A, B, Q, R = random_problem(4, 3, 2)
+        d, c = solve_dare(A, B, Q, R), solve_care(A, B, Q, R)
+        assert float(d.residual) < 1e-14 and float(c.residual) < 1e-14
+        Ad = A - B @ np.asarray(d.K)
+        np.testing.assert_allclose(d.margin, -np.log(np.abs(np.linalg.eigvals(Ad)).max()), rtol=1e-6)
+        Ac = A - B @ np.asarray(c.K)
+        abscissa = np.linalg.eigvals(Ac).real.max() / np.abs(Ac).max()
+        np.testing.assert_allclose(c.margin, -abscissa, rtol=1e-6)
+
+
+def test_filter_forms_are_the_transposed_control_forms():
+    with enable_x64(True):
+        A, B, Q, R = random_problem(6, 3, 2)
+        F, H = A.T, B.T
+        dare, care = solve_filter_dare(F, H, Q, R), solve_filter_care(F, H, Q, R)
+        Sigma = sl.solve_discrete_are(F.T, H.T, Q, R)
+        np.testing.assert_allclose(dare.X, Sigma, rtol=1e-10, atol=1e-12)
+        predictor = F @ Sigma @ H.T @ np.linalg.inv(H @ Sigma @ H.T + R)
+        np.testing.assert_allclose(dare.K, predictor, rtol=1e-9, atol=1e-12)
+        Sigma = sl.solve_continuous_are(F.T, H.T, Q, R)
+        np.testing.assert_allclose(care.X, Sigma, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(care.K, Sigma @ H.T @ np.linalg.inv(R), rtol=1e-9, atol=1e-12)
+
+
+#: (solver, A, B, Q, R, the eager error) of problems without a stabilising solution
+NO_STABILISING_SOLUTION = {
+    "dare-unstabilisable-1.2": (
+        solve_dare, np.diag([1.2, 0.5]), np.array([[0.0], [1.0]]), np.eye(2),
+        "not stabilisable: the mode 1.2 of A",
+    ),
+    "dare-undetectable-1.0": (
+        solve_dare, np.diag([1.0, 0.5]), np.array([[1.0], [1.0]]), np.diag([0.0, 1.0]),
+        "no stabilising solution: the mode 1 of A",
+    ),
+    "dare-undetectable-rotation": (  # modes 0.6 +- 0.8j on the unit circle, Q = 0
+        solve_dare, np.array([[0.6, 0.8], [-0.8, 0.6]]), np.array([[1.0], [0.3]]),
+        np.zeros((2, 2)), "no stabilising solution: the mode 0.6",
+    ),
+    "care-unstabilisable-0.3": (
+        solve_care, np.diag([0.3, -1.0]), np.array([[0.0], [1.0]]), np.eye(2),
+        "not stabilisable: the mode 0.3 of A",
+    ),
+    "care-undetectable-i": (
+        solve_care, np.array([[0.0, 1.0], [-1.0, 0.0]]), np.array([[0.0], [1.0]]),
+        np.zeros((2, 2)), "no stabilising solution: the mode 0[+-]1j of A",
+    ),
+    "care-undetectable-0": (
+        solve_care, np.diag([0.0, -1.0]), np.array([[1.0], [1.0]]), np.diag([0.0, 1.0]),
+        "no stabilising solution: the mode 0 of A",
+    ),
+}  # fmt: skip
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("case", list(NO_STABILISING_SOLUTION))
+def test_no_stabilising_solution_raises_eagerly_and_flags_under_jit(case, dtype):
+    solve, A, B, Q, match = NO_STABILISING_SOLUTION[case]
+    with enable_x64(dtype == "float64"):
+        with pytest.raises(ValueError, match=match):
+            solve(A, B, Q, np.eye(1))
+        args = [jnp.asarray(v, dtype) for v in (A, B, Q, np.eye(1))]
+        solution = jax.jit(solve)(*args)
+        assert int(solution.status) & RiccatiStatus.NOT_STABILISING
+        assert not bool(solution.ok)
+        if solve is solve_care:  # the bare gain is NaN rather than wrong
+            assert not bool(jnp.any(jnp.isfinite(jax.jit(lqr_gain)(*args))))
+
+
+def test_stabilising_solution_without_detectability():
+    """Unobservable modes outside the stability region need no detectability: the stabilising
+    solution exists (as scipy finds), eagerly and under jit."""
+    with enable_x64(True):
+        A, B, Q = np.diag([1.2, 0.5]), np.array([[1.0], [1.0]]), np.diag([0.0, 1.0])
+        for solution in (solve_dare(A, B, Q, np.eye(1)), jax.jit(solve_dare)(A, B, Q, np.eye(1))):
+            assert int(solution.status) == RiccatiStatus.OK
+            np.testing.assert_allclose(
+                solution.X, sl.solve_discrete_are(A, B, Q, np.eye(1)), rtol=1e-12
+            )
+            assert np.abs(np.linalg.eigvals(A - B @ np.asarray(solution.K))).max() < 1
+        # the filter form F = 2, H = 1, Q = 0: Sigma = 3 (F - K H = 0.5), not the fixed point 0
+        for solve in (solve_filter_dare, jax.jit(solve_filter_dare)):
+            solution = solve(np.array([[2.0]]), np.array([[1.0]]), np.zeros((1, 1)), np.eye(1))
+            np.testing.assert_allclose(solution.X, [[3.0]], rtol=1e-14)
+            np.testing.assert_allclose(solution.K, [[1.5]], rtol=1e-14)
+            assert int(solution.status) == RiccatiStatus.OK
+
+
+def test_filter_form_names_F_and_H():
+    F, H = np.diag([2.0, 0.5]), np.array([[0.0, 1.0]])
+    with pytest.raises(ValueError, match=r"^\(F, H\): not detectable: the mode 2 of F"):
+        solve_filter_dare(F, H, np.eye(2), np.eye(1))
+    with pytest.raises(ValueError, match=r"^\(F, H\): not detectable: the mode 2 of F"):
+        solve_filter_care(F, H, np.eye(2), np.eye(1))
+    with pytest.raises(ValueError, match=r"^\(F, Q\): no stabilising solution: the mode 1 of F"):
+        solve_filter_dare(np.diag([1.0, 0.5]), np.ones((1, 2)), np.diag([0.0, 1.0]), np.eye(1))
+    with pytest.raises(ValueError, match="^F:"):
+        solve_filter_dare(F, np.ones((1, 3)), np.eye(2), np.eye(1))
 
 
 def test_stable_modes_need_neither_control_nor_observation():
     with enable_x64(True):
         A, B, Q, R = np.diag([0.5, -0.3]), np.zeros((2, 1)), np.zeros((2, 2)), np.eye(1)
-        np.testing.assert_array_equal(solve_dare(A, B, Q, R), np.zeros((2, 2)))
+        np.testing.assert_array_equal(solve_dare(A, B, Q, R).X, np.zeros((2, 2)))
         Q = np.eye(2)  # then X = sum_k A^k Q A^k = diag(1 / (1 - a^2))
         np.testing.assert_allclose(
-            solve_dare(A, B, Q, R), np.diag([1 / 0.75, 1 / 0.91]), rtol=1e-12
+            solve_dare(A, B, Q, R).X, np.diag([1 / 0.75, 1 / 0.91]), rtol=1e-12
         )
 
 

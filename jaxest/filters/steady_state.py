@@ -30,7 +30,7 @@ from jaxest.filters.base import (
 from jaxest.filters.common import gaussian_loglik
 from jaxest.linalg import symmetrize
 from jaxest.models import LinearGaussian
-from jaxest.riccati import solve_dare
+from jaxest.riccati import solve_filter_dare
 
 
 class SteadyStateGain(eqx.Module):
@@ -81,12 +81,14 @@ def check_time_invariant(model) -> None:
 
 
 def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
-    """Sigma from the filter Riccati equation (eq 5), solved as the control-form DARE
-    ``solve_dare(Phi^T, H^T, Gamma Q Gamma^T, R)``, then K (eq 4) and Q_eps."""
+    """Sigma from the filter Riccati equation (eq 5), ``solve_filter_dare(Phi, H, Gamma Q
+    Gamma^T, R)``, then K (eq 4) and Q_eps. Concrete (F, H) without a stabilising solution raise
+    a ``ValueError`` naming them; under ``jit`` a solution whose status is not OK gives NaN."""
     check_time_invariant(model)
     Phi, H, R = model.F, model.H, model.R
     G, _ = model.process_noise(None, None, 0)
-    Sigma = solve_dare(Phi.T, H.T, symmetrize(G @ model.Q @ G.T), R)
+    solution = solve_filter_dare(Phi, H, symmetrize(G @ model.Q @ G.T), R)
+    Sigma = jnp.where(solution.ok, solution.X, jnp.nan)
     Qe = symmetrize(H @ Sigma @ H.T + R)
     K = jnp.linalg.solve(Qe, H @ Sigma).T
     return SteadyStateGain(Phi, H, Sigma, K, Qe)

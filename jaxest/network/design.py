@@ -42,7 +42,7 @@ from jaxest.network.structure import (
     piece_index,
     unheard_couplings,
 )
-from jaxest.riccati import solve_care
+from jaxest.riccati import solve_filter_care
 
 
 class GainConstraint(eqx.Module):
@@ -353,4 +353,4 @@ def centralized_steady_state(system: LargeScaleSystem):
     """Steady-state Kalman-Bucy covariance of the whole system (the lower bound on every structure):
     the filter CARE A P + P A^T - P H^T R^{-1} H P + F Q F^T = 0 through ``jaxest.riccati``."""
     A, H, W, R = system.centralized()
-    return solve_care(A.T, H.T, W, R)
+    return solve_filter_care(A, H, W, R).X

@@ -37,7 +37,7 @@ from jaxest.observers.adaptive import (
 )
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
-from jaxest.riccati import lqr_gain, solve_care
+from jaxest.riccati import lqr_gain, solve_filter_care
 from jaxest.systems.aircraft_linear import aircraft
 from jaxest.tune import fit
 
@@ -104,7 +104,7 @@ def hand_observer(plant: Plant, window: int = EXCITATION_WINDOW) -> AdaptiveObse
 def prior_for(observer: AdaptiveObserver, plant: Plant) -> ObserverPrior:
     """x_hat = 0, theta_hat = 1 (nominal effectiveness), P = steady state of eq 32 (filter CARE)."""
     A, C = plant.model.A, plant.model.C
-    P0 = solve_care(A.T, C.T, observer.Q, observer.R)
+    P0 = solve_filter_care(A, C, observer.Q, observer.R).X
     return ObserverPrior(jnp.zeros(A.shape[0]), jnp.ones_like(plant.theta), P0)
 
 
