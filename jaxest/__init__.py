@@ -50,7 +50,24 @@ from jaxest.models import (
     simulate as simulate,
 )
 from jaxest.montecarlo import monte_carlo as monte_carlo
-from jaxest.riccati import lqr_gain as lqr_gain, solve_care as solve_care, solve_dare as solve_dare
+from jaxest.observers import (
+    AdaptiveObserver as AdaptiveObserver,
+    ContinuousLTV as ContinuousLTV,
+    DiscreteAdaptiveObserver as DiscreteAdaptiveObserver,
+    DiscreteLTV as DiscreteLTV,
+    InputEffectiveness as InputEffectiveness,
+    ObserverPrior as ObserverPrior,
+    ObserverStatus as ObserverStatus,
+)
+from jaxest.riccati import (
+    RiccatiSolution as RiccatiSolution,
+    RiccatiStatus as RiccatiStatus,
+    lqr_gain as lqr_gain,
+    solve_care as solve_care,
+    solve_dare as solve_dare,
+    solve_filter_care as solve_filter_care,
+    solve_filter_dare as solve_filter_dare,
+)
 from jaxest.smoothers import SmootherResult as SmootherResult, rts_smooth as rts_smooth
 from jaxest.smoothers.steady_state import (
     arma_innovation_model as arma_innovation_model,

@@ -487,7 +487,10 @@ def _check_modes(A, B, Q, discrete, wording, tol):
         if np.linalg.svd(np.hstack([shifted, B]), compute_uv=False)[-1] <= tol * scale:
             raise ValueError(wording["unstabilisable"].format(lam=f"{lam:.6g}", where=where))
         on_boundary = distance <= tol
-        if on_boundary and np.linalg.svd(np.vstack([shifted, Q]), compute_uv=False)[-1] <= tol * scale:
+        if (
+            on_boundary
+            and np.linalg.svd(np.vstack([shifted, Q]), compute_uv=False)[-1] <= tol * scale
+        ):
             raise ValueError(wording["boundary"].format(lam=f"{lam:.6g}", boundary=boundary))
 
 

@@ -16,11 +16,14 @@ def _rational(a):
 
 
 def _mul(a, b):
-    return [[sum(x * y for x, y in zip(row, col)) for col in zip(*b)] for row in a]
+    return [
+        [sum(x * y for x, y in zip(row, col, strict=True)) for col in zip(*b, strict=True)]
+        for row in a
+    ]
 
 
 def _t(a):
-    return [list(col) for col in zip(*a)]
+    return [list(col) for col in zip(*a, strict=True)]
 
 
 def _lin(*terms):
@@ -28,7 +31,10 @@ def _lin(*terms):
     coeff, first = terms[0]
     out = [[coeff * v for v in row] for row in first]
     for coeff, mat in terms[1:]:
-        out = [[o + coeff * v for o, v in zip(ro, rm)] for ro, rm in zip(out, mat)]
+        out = [
+            [o + coeff * v for o, v in zip(ro, rm, strict=True)]
+            for ro, rm in zip(out, mat, strict=True)
+        ]
     return out
 
 
@@ -42,14 +48,16 @@ def _solve(a, b):
         for r in range(n):
             if r != c and rows[r][c] != 0:
                 f = rows[r][c] / rows[c][c]
-                rows[r] = [x - f * y for x, y in zip(rows[r], rows[c])]
+                rows[r] = [x - f * y for x, y in zip(rows[r], rows[c], strict=True)]
     return [[rows[i][j] / rows[i][i] for j in range(n, len(rows[0]))] for i in range(n)]
 
 
 def _solve_operator(op, C):
     """N with op(N) = C for a linear map op on n x n matrices (vectorised, exact)."""
     n = len(C)
-    basis = [[[Fraction(int(i * n + k == j)) for k in range(n)] for i in range(n)] for j in range(n * n)]
+    basis = [
+        [[Fraction(int(i * n + k == j)) for k in range(n)] for i in range(n)] for j in range(n * n)
+    ]
     columns = [[v for row in op(E) for v in row] for E in basis]
     system = [[columns[j][i] for j in range(n * n)] for i in range(n * n)]
     solution = _solve(system, [[v] for row in C for v in row])
@@ -80,7 +88,9 @@ def exact_dare(A, B, Q, R, start, steps=4):
     for _ in range(steps):
         res, K = residual(X)
         Ac = _lin((1, A), (-1, _mul(B, K)))
-        N = _solve_operator(lambda E: _lin((1, _mul(_mul(_t(Ac), E), Ac)), (-1, E)), _lin((-1, res)))
+        N = _solve_operator(
+            lambda E: _lin((1, _mul(_mul(_t(Ac), E), Ac)), (-1, E)), _lin((-1, res))
+        )
         X = _round(_lin((1, X), (1, N)))
     return _as_float(X), float(max(abs(v) for row in residual(X)[0] for v in row))
 

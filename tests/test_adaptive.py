@@ -15,6 +15,7 @@ from jaxest.observers import (
     AdaptiveObserver,
     ContinuousLTV,
     DiscreteAdaptiveObserver,
+    DiscreteLTV,
     InputEffectiveness,
     ObserverPrior,
     ObserverStatus as Status,
@@ -241,11 +242,19 @@ def test_excitation_lost_without_reference():
         )
 
 
-def numpy_discrete_observer(F, B, H, Phi, Q, R, lam, x, P, theta, Sp, ys, us):
-    """docs/papers/adaptive.md in its own ordering: predict with (u_{k-1}, Phi_{k-1}), then update."""
+def numpy_discrete_observer(
+    F, B, H, Phi, Q, R, lam, x, P, theta, Sp, ys, us, window=200, anti_windup=True
+):
+    """docs/papers/adaptive.md in its own ordering (predict with (u_{k-1}, Phi_{k-1}), then
+    update), in covariance form S_theta. With ``anti_windup`` the forgetting of
+    DiscreteAdaptiveObserver's docstring: lambda_k = max(lambda, 1 - mu_k) (mu_k the smallest
+    generalised eigenvalue of (W_k / N, S_theta^-1)) and the prior term, applied as
+    S_bar = (lambda_k S_theta^-1 + (1 - lambda_k) S_0^-1)^-1 before the measurement update;
+    without, the paper's recursion. Returns x, theta and the window Gramians W_k (sums of
+    Omega^T S^-1 Omega over the last ``window`` steps)."""
     n, p = F.shape[0], theta.shape[0]
-    Ups = np.zeros((n, p))
-    xs, thetas = [], []
+    Ups, Sp0 = np.zeros((n, p)), Sp
+    xs, thetas, grams, increments = [], [], [], []
     for k, y in enumerate(ys):
         if k == 0:  # the prior is on x_0: no prediction before the first measurement
             x_pred, P_pred, Ups_pred = x, P, Ups
@@ -259,16 +268,27 @@ def numpy_discrete_observer(F, B, H, Phi, Q, R, lam, x, P, theta, Sp, ys, us):
         P = (np.eye(n) - K @ H) @ P_pred
         Ups = (np.eye(n) - K @ H) @ Ups_pred
         Om = H @ Ups_pred
-        Lam = np.linalg.inv(lam * S + Om @ Sp @ Om.T)
-        Gam = Sp @ Om.T @ Lam
-        Sp = (Sp - Sp @ Om.T @ Lam @ Om @ Sp) / lam
+        increments.append(Om.T @ np.linalg.solve(S, Om))
+        W = sum(increments[-window:])
+        grams.append(W)
         e = y - H @ x_pred
+        if anti_windup:
+            mu = scipy.linalg.eigh(W / window, np.linalg.inv(Sp), eigvals_only=True)[0]
+            lam_k = max(lam, 1 - mu)
+            Sp = np.linalg.inv(lam_k * np.linalg.inv(Sp) + (1 - lam_k) * np.linalg.inv(Sp0))
+            Lam = np.linalg.inv(S + Om @ Sp @ Om.T)
+            Gam = Sp @ Om.T @ Lam
+            Sp = Sp - Sp @ Om.T @ Lam @ Om @ Sp
+        else:
+            Lam = np.linalg.inv(lam * S + Om @ Sp @ Om.T)
+            Gam = Sp @ Om.T @ Lam
+            Sp = (Sp - Sp @ Om.T @ Lam @ Om @ Sp) / lam
         theta_new = theta + Gam @ e
         x = x_pred + K @ e + Ups @ (theta_new - theta)
         theta = theta_new
         xs.append(x)
         thetas.append(theta)
-    return np.array(xs), np.array(thetas)
+    return np.array(xs), np.array(thetas), np.array(grams)
 
 
 def test_discrete_form_matches_numpy_and_converges():
@@ -280,7 +300,7 @@ def test_discrete_form_matches_numpy_and_converges():
         dprior = ObserverPrior(jnp.zeros(4), jnp.ones(1), jnp.eye(4), 10.0 * jnp.eye(1))
         res = run(dobs, dmodel, sim.observations, inputs=sim.inputs, prior=dprior)
         Phi = np.stack([np.asarray(dmodel.phi(k, u, None)) for k, u in enumerate(sim.inputs[:400])])
-        xs, thetas = numpy_discrete_observer(
+        xs, thetas, grams = numpy_discrete_observer(
             np.asarray(dmodel.F),
             np.asarray(dmodel.B),
             np.asarray(dmodel.H),
@@ -297,9 +317,100 @@ def test_discrete_form_matches_numpy_and_converges():
         )
         np.testing.assert_allclose(res.theta[:400], thetas, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(res.x[:400], xs, rtol=1e-9, atol=1e-12)
+        # the monitor: smallest eigenvalue of the window Gramian in units of the prior's information
+        np.testing.assert_allclose(res.excitation[:400], 10.0 * grams[:, 0, 0], rtol=1e-9)
+        assert not np.any(np.asarray(res.status) & Status.NOT_EXCITED)
         # the sampled truth is exactly the discretised model: noise-free, the estimates converge
-        assert abs(float(res.theta[-1, 0]) - 2.0) < 1e-10
-        assert float(jnp.linalg.norm(res.x[-1] - sim.states[-1])) < 1e-10
+        # geometrically (the bounded forgetting slows the paper's rate; with lambda = 1 the error
+        # would still be 3e-3 at the end)
+        error = np.abs(np.asarray(res.theta[:, 0]) - 2.0)
+        assert error[-1] < 1e-7 and error[-1] < 1e-3 * error[1000]
+        assert float(jnp.linalg.norm(res.x[-1] - sim.states[-1])) < error[-1]  # x follows theta
+
+
+def windup_reproduction():
+    """Issue 18's reproduction: the input off from 30 s to 70 s, forgetting 0.99."""
+    A = jnp.array([[-1.0, 1.0], [0.0, -2.0]])
+    B = jnp.array([[0.0], [1.0]])
+    C = jnp.array([[1.0, 0.0]])
+    dm = ContinuousLTV(A, jnp.zeros_like(B), C, InputEffectiveness(B)).discretize(0.01)
+    T, theta = 8000, jnp.array([2.0])
+    t = np.arange(T) * 0.01
+    u = (np.sin(1.3 * t) + np.sin(3.1 * t))[:, None]
+    u[3000:7000] = 0.0
+    u = jnp.asarray(u)
+
+    def step(x, ku):
+        return dm.F @ x + dm.B @ ku[1] + dm.phi(ku[0], ku[1], None) @ theta, C @ x
+
+    ys = jax.lax.scan(step, jnp.zeros(2), (jnp.arange(T), u))[1]
+    ys = ys + 0.01 * jax.random.normal(jax.random.PRNGKey(0), (T, 1))
+    prior = ObserverPrior(jnp.zeros(2), jnp.ones(1), jnp.eye(2), jnp.eye(1))
+    return dm, ys, u, prior
+
+
+def test_forgetting_does_not_wind_up_and_the_unexcited_interval_is_flagged():
+    with enable_x64():
+        dm, ys, u, prior = windup_reproduction()
+        obs = DiscreteAdaptiveObserver(Q=1e-6 * jnp.eye(2), R=1e-4 * jnp.eye(1), forgetting=0.99)
+        res = run(obs, dm, ys, inputs=u, prior=prior)
+        error = np.abs(np.asarray(res.theta[:, 0]) - 2.0)
+        assert error[7000:7500].max() < 0.05 * 2.0  # 70-75 s, after the input returns
+        assert error[7000:].max() < 0.05 * 2.0 and error[1000:3000].max() < 0.05 * 2.0
+        lost = (np.asarray(res.status) & Status.NOT_EXCITED) != 0
+        assert lost[3500:7000].all()  # from 5 s after the input stops to its return
+        assert not lost[200:3000].any() and not lost[7100:].any()  # excited once the window fills
+        assert np.all((np.asarray(res.status) & ~Status.NOT_EXCITED) == 0)
+        # the same run by the NumPy recursion, and the paper's forgetting, which winds up
+        Phi = np.stack([np.asarray(dm.phi(k, v, None)) for k, v in enumerate(u)])
+        args = [np.asarray(v) for v in (dm.F, dm.B, dm.H)] + [Phi, 1e-6 * np.eye(2)]
+        args += [1e-4 * np.eye(1), 0.99, np.zeros(2), np.eye(2), np.ones(1), np.eye(1)]
+        _, thetas, _ = numpy_discrete_observer(*args, np.asarray(ys), np.asarray(u))
+        np.testing.assert_allclose(res.theta, thetas, rtol=1e-7)
+        _, wound, _ = numpy_discrete_observer(
+            *args, np.asarray(ys), np.asarray(u), anti_windup=False
+        )
+        assert np.abs(wound[7000:7500, 0] - 2.0).max() > 100
+
+
+def test_discrete_model_takes_matrices_stacked_over_time():
+    """Stacked F_k, B_k, H_k give the callables' results; a time-varying A(t) is sampled."""
+    with enable_x64():
+        model, A0 = _ltv_model()
+        dt, T = 0.05, 60
+        sampled = model.discretize(dt, steps=T)
+        assert sampled.F.shape == (T, 2, 2) and sampled.B.shape == (T, 2, 1)
+        # one sample interval against scipy's integrator (u, psi held at t_k)
+        rng = np.random.default_rng(0)
+        theta = np.array([0.7, -0.4])
+        for k in (0, 17, 59):
+            x, u, y = rng.normal(size=2), rng.normal(size=1), rng.normal(size=1)
+            F, B, _ = sampled.matrices(k)
+            x_next = F @ x + B @ u + sampled.phi(k, jnp.asarray(u), jnp.asarray(y)) @ theta
+            t0 = k * dt
+            forcing = np.asarray(model.B @ u + model.psi(t0, u, y) @ theta)
+            sol = scipy.integrate.solve_ivp(
+                lambda t, z: np.asarray(model.A(t)) @ z + forcing,
+                (t0, t0 + dt),
+                x,
+                rtol=1e-12,
+                atol=1e-14,
+            )
+            np.testing.assert_allclose(x_next, sol.y[:, -1], rtol=1e-9, atol=1e-12)
+            np.testing.assert_allclose(sampled.matrices(k)[2], model.C(t0), rtol=1e-15)
+        # the observer reads stacked matrices as it reads callables of k
+        as_callables = DiscreteLTV(
+            lambda k: sampled.F[k], lambda k: sampled.B[k], sampled.H, sampled.phi
+        )
+        ys = jnp.asarray(rng.normal(size=(T, 1)))
+        us = jnp.asarray(rng.normal(size=(T, 1)))
+        obs = DiscreteAdaptiveObserver(Q=1e-3 * jnp.eye(2), R=1e-2 * jnp.eye(1), forgetting=0.98)
+        prior = ObserverPrior(jnp.zeros(2), jnp.zeros(2), jnp.eye(2), jnp.eye(2))
+        stacked = run(obs, sampled, ys, inputs=us, prior=prior)
+        called = run(obs, as_callables, ys, inputs=us, prior=prior)
+        np.testing.assert_allclose(stacked.theta, called.theta, rtol=1e-12, atol=1e-14)
+        with pytest.raises(ValueError, match="^steps:"):
+            model.discretize(dt)
 
 
 def _loss(obs, model, prior, Kbar, theta, r):

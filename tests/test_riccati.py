@@ -77,7 +77,9 @@ def test_paper_filter_riccati_eq5():
         H = np.array([[1.0, 0.0]])
         Sigma = solve_dare(Phi.T, H.T, Gamma @ Gamma.T, np.eye(1)).X
         np.testing.assert_allclose(Sigma, [[1.078811, 1.441808], [1.441808, 4.030933]], atol=5e-7)
-        np.testing.assert_array_equal(solve_filter_dare(Phi, H, Gamma @ Gamma.T, np.eye(1)).X, Sigma)
+        np.testing.assert_array_equal(
+            solve_filter_dare(Phi, H, Gamma @ Gamma.T, np.eye(1)).X, Sigma
+        )
 
 
 @pytest.mark.parametrize("dtype", ["float32", "float64"])
@@ -185,7 +187,9 @@ def test_status_fields_against_numpy():
         d, c = solve_dare(A, B, Q, R), solve_care(A, B, Q, R)
         assert float(d.residual) < 1e-14 and float(c.residual) < 1e-14
         Ad = A - B @ np.asarray(d.K)
-        np.testing.assert_allclose(d.margin, -np.log(np.abs(np.linalg.eigvals(Ad)).max()), rtol=1e-6)
+        np.testing.assert_allclose(
+            d.margin, -np.log(np.abs(np.linalg.eigvals(Ad)).max()), rtol=1e-6
+        )
         Ac = A - B @ np.asarray(c.K)
         abscissa = np.linalg.eigvals(Ac).real.max() / np.abs(Ac).max()
         np.testing.assert_allclose(c.margin, -abscissa, rtol=1e-6)

@@ -20,7 +20,9 @@ from jaxest.systems.wiener_example import ARBITRARY_START, PAPER, PRINTED_ADJ_K,
 from tests.reference import kalman_filter, rts_smoother
 
 wiener_smooth_jit = jax.jit(wiener_smooth, static_argnames=("start", "end_term"))
-steady_state_smooth_jit = jax.jit(steady_state_smooth)
+steady_state_smooth_jit = jax.jit(
+    lambda model, ys, prior: steady_state_smooth(model, ys, prior=prior)
+)
 
 
 def simulate(model, T, seed=0):
@@ -158,18 +160,64 @@ def test_steady_state_filter_matches_kalman_filter_from_sigma():
         assert np.all(np.asarray(ours.status) == 0)
 
 
+def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
+    """An undetectable (F, H) raises naming F and H; under jit its Sigma is NaN (the filter's
+    status then says NONFINITE). Unobservable modes outside the unit circle need no
+    detectability: F = 2, H = 1, Q = 0 gives Sigma = 3, where the Kalman filter converges."""
+    with enable_x64(True):
+        undetectable = je.LinearGaussian(
+            F=jnp.diag(jnp.array([2.0, 0.5])), H=jnp.array([[0.0, 1.0]]), Q=jnp.eye(2), R=jnp.eye(1)
+        )
+        with pytest.raises(ValueError, match=r"^\(F, H\): not detectable: the mode 2 of F"):
+            steady_state_gain(undetectable)
+        gain = jax.jit(steady_state_gain)(undetectable)
+        assert not np.any(np.isfinite(gain.Sigma))
+        ys = jnp.zeros((5, 1))
+        filtered = jax.jit(
+            lambda model: je.run(
+                SteadyStateKalmanFilter(), model, ys, prior=je.Gaussian(jnp.zeros(2), jnp.eye(2))
+            )
+        )(undetectable)
+        assert np.all(np.asarray(filtered.status) & je.Status.NONFINITE)
+        scalar = je.LinearGaussian(
+            F=jnp.array([[2.0]]), H=jnp.array([[1.0]]), Q=jnp.zeros((1, 1)), R=jnp.eye(1)
+        )
+        for gain in (steady_state_gain(scalar), jax.jit(steady_state_gain)(scalar)):
+            np.testing.assert_allclose(gain.Sigma, [[3.0]], rtol=1e-14)
+        # the Kalman filter from any prior converges to it: P(t|t-1) = 4 P / (1 + P) -> 3
+        P = 10.0
+        for _ in range(60):
+            P = 4 * P / (1 + P)
+        np.testing.assert_allclose(P, 3.0, rtol=1e-12)
+
+
+def test_smooth_requires_the_final_innovations():
+    """WienerSmoother.smooth has no silent default: the end term or an explicit None."""
+    with enable_x64(True):
+        model = paper_model()
+        ys = simulate(model, 101, seed=1)
+        smoother = WienerSmoother.from_model(model)
+        optimal, final = smoother.optimal_start(ys, jnp.zeros(2))
+        with pytest.raises(TypeError, match="final_innovations"):
+            smoother.smooth(ys, optimal)
+        reference = steady_state_smooth_jit(model, ys, je.Gaussian(jnp.zeros(2), jnp.eye(2))).mean
+        assert np.max(np.abs(smoother.smooth(ys, optimal, final) - reference)) < 1e-8
+        printed = smoother.smooth(ys, optimal, None)
+        assert np.max(np.abs(printed - reference)) > 1e-2
+
+
 @pytest.mark.parametrize("make_model", [paper_model, three_state_model], ids=["paper", "3-state"])
 def test_wiener_with_optimal_start_equals_eq15_over_the_whole_interval(make_model):
     with enable_x64(True):
         model = make_model()
         n = model.F.shape[0]
         ys = simulate(model, 301, seed=3)
-        m0 = jnp.zeros(n)
-        reference = steady_state_smooth_jit(model, ys, je.Gaussian(m0, jnp.eye(n))).mean
-        exact = wiener_smooth_jit(model, ys, m0, start="optimal")
+        prior = je.Gaussian(jnp.zeros(n), jnp.eye(n))
+        reference = steady_state_smooth_jit(model, ys, prior).mean
+        exact = wiener_smooth_jit(model, ys, prior=prior, start="optimal")
         assert np.max(np.abs(exact - reference)) < 1e-8
         # The theorem as printed (no end term) is off near t = N only, like |lambda_max|^(N - t).
-        printed = wiener_smooth_jit(model, ys, m0, start="optimal", end_term=False)
+        printed = wiener_smooth_jit(model, ys, prior=prior, start="optimal", end_term=False)
         error = np.max(np.abs(printed - reference), axis=1)
         assert error[-1] > 1e-2
         assert np.max(error[:100]) < 1e-6
@@ -259,9 +307,13 @@ def test_jit_vmap_grad(dtype):
         model = jax.tree_util.tree_map(lambda a: jnp.asarray(a, dtype), paper_model())
         keys = jax.random.split(jax.random.key(0), 3)
         ys = jax.vmap(lambda k: je.simulate(model, jnp.zeros(2, dtype), 120, k).y)(keys)
-        m0 = jnp.zeros(2, dtype)
+        prior = je.Gaussian(jnp.zeros(2, dtype), jnp.eye(2, dtype=dtype))
         run = jax.jit(
-            jax.vmap(lambda y: wiener_smooth(model, y, m0, jnp.ones((2, 2), dtype), start="eq13"))
+            jax.vmap(
+                lambda y: wiener_smooth(
+                    model, y, prior=prior, initial_values=jnp.ones((2, 2), dtype), start="eq13"
+                )
+            )
         )
         xs = run(ys)
         assert xs.dtype == jnp.dtype(dtype) and xs.shape == (3, 120, 2)
@@ -269,15 +321,15 @@ def test_jit_vmap_grad(dtype):
             ref = wiener_smooth(
                 paper_model(),
                 jnp.asarray(ys[1], jnp.float64),
-                jnp.zeros(2),
-                jnp.ones((2, 2)),
+                prior=je.Gaussian(jnp.zeros(2), jnp.eye(2)),
+                initial_values=jnp.ones((2, 2)),
                 start="eq13",
             )
         np.testing.assert_allclose(xs[1], ref, atol=1e-4 if dtype == "float32" else 1e-10)
 
         def loss(r):
             noisy = je.LinearGaussian(F=model.F, H=model.H, Q=model.Q, R=r * model.R, G=model.G)
-            return jnp.sum(wiener_smooth(noisy, ys[0], m0, start="optimal") ** 2)
+            return jnp.sum(wiener_smooth(noisy, ys[0], prior=prior, start="optimal") ** 2)
 
         g = jax.jit(jax.grad(loss))(jnp.asarray(1.3, dtype))
         assert g.dtype == jnp.dtype(dtype) and np.isfinite(g)
@@ -289,14 +341,15 @@ def test_jit_vmap_grad(dtype):
 def test_bad_arguments_name_the_argument():
     model = paper_model()
     ys = jnp.zeros((20, 1))
+    prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
     with pytest.raises(ValueError, match="^start:"):
-        wiener_smooth(model, ys, jnp.zeros(2), start="best")
+        wiener_smooth(model, ys, prior=prior, start="best")
     with pytest.raises(ValueError, match="^initial_values:"):
-        wiener_smooth(model, ys, jnp.zeros(2), jnp.zeros((3, 2)), start="eq13")
-    with pytest.raises(ValueError, match="^prior_mean:"):
-        wiener_smooth(model, ys, None, start="optimal")
+        wiener_smooth(model, ys, prior=prior, initial_values=jnp.zeros((3, 2)), start="eq13")
+    with pytest.raises(ValueError, match="^prior:"):
+        wiener_smooth(model, ys, start="optimal")
     with pytest.raises(ValueError, match="^ys:"):
-        wiener_smooth(model, jnp.zeros((20, 2)), jnp.zeros(2))
+        wiener_smooth(model, jnp.zeros((20, 2)), prior=prior)
     with_input = je.LinearGaussian(
         F=model.F, H=model.H, Q=model.Q, R=model.R, G=model.G, B=jnp.ones((2, 1))
     )

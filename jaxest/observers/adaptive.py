@@ -39,7 +39,8 @@ from jaxtyping import Array, Float, Int
 from jaxest._checks import check_matrix
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status as check_finite_status
-from jaxest.linalg import symmetrize
+from jaxest.linalg import cho_solve_lower, chol_inverse, cholesky, solve_triangular, symmetrize
+from jaxest.models import at_time
 from jaxest.observers import excitation
 from jaxest.observers.excitation import ObserverStatus as Status
 
@@ -87,15 +88,43 @@ class ContinuousLTV(eqx.Module):
         F, E = _exp_and_integral(self.A, dt)
         return lambda x, u, y, theta, t: F @ x + E @ (self.B @ u + self.psi(t, u, y) @ theta)
 
-    def discretize(self, dt: float) -> DiscreteLTV:
-        """The exact zero-order-hold sampling (time-invariant A, B; psi constant over a sample).
+    def discretize(self, dt: float, steps: int | None = None, substeps: int = 32) -> DiscreteLTV:
+        """The zero-order-hold sampling at t_k = k dt (u and psi held over each sample).
 
-        F = e^{A dt}, B_d = E B, Phi_k = E psi(k dt, u_k, y_k) with E = int_0^dt e^{A s} ds.
+        Constant A, B: exact, F = e^{A dt}, B_d = E B, Phi_k = E psi(k dt, u_k, y_k) with
+        E = int_0^dt e^{A s} ds. Time-varying A(t) or B(t): over [t_k, t_k + dt],
+        F_k = Phi(t_k + dt, t_k) (the transition matrix), B_k = int Phi(t_k + dt, s) B(s) ds and
+        E_k = int Phi(t_k + dt, s) ds, from dPhi/ds = A Phi, dB_k/ds = A B_k + B(s),
+        dE_k/ds = A E_k + I by Runge-Kutta with ``substeps`` steps, for k < ``steps`` (the
+        horizon, needed then) and stacked over time. A callable C(t) is read at t_k.
         """
-        if callable(self.A) or callable(self.B):
-            raise ValueError("model: discretize needs constant arrays A and B")
-        F, E = _exp_and_integral(self.A, dt)
-        return DiscreteLTV(F, E @ self.B, self.C, HeldRegressor(E, self.psi, dt))
+        H = SampledMatrix(self.C, dt) if callable(self.C) else self.C
+        if not (callable(self.A) or callable(self.B)):
+            F, E = _exp_and_integral(self.A, dt)
+            return DiscreteLTV(F, E @ self.B, H, HeldRegressor(E, self.psi, dt))
+        if steps is None or steps < 1:
+            raise ValueError(
+                "steps: a time-varying A(t) or B(t) is sampled over a horizon; pass "
+                f"steps=T (the number of samples), got {steps}"
+            )
+        F, B, E = jax.vmap(lambda k: self._sample_interval(k * dt, dt, substeps))(jnp.arange(steps))
+        return DiscreteLTV(F, B, H, HeldRegressor(E, self.psi, dt))
+
+    def _sample_interval(self, t, dt, substeps):
+        """(Phi(t + dt, t), int Phi(t + dt, s) B(s) ds, int Phi(t + dt, s) ds) by Runge-Kutta."""
+        A0, B0, _ = self.matrices(t)
+        eye = jnp.eye(A0.shape[-1], dtype=A0.dtype)
+
+        def field(s, z):
+            transition, input_integral, integral = z
+            A, B, _ = self.matrices(s)
+            return A @ transition, A @ input_integral + B, A @ integral + eye
+
+        zero = jnp.zeros_like(eye)
+        transition, input_integral, integral = _rk4(
+            field, (eye, jnp.zeros_like(B0), zero), t, dt, substeps
+        )
+        return transition, input_integral, integral
 
 
 def _exp_and_integral(A, dt):
@@ -117,27 +146,45 @@ class InputEffectiveness(eqx.Module):
 
 
 class HeldRegressor(eqx.Module):
-    """Phi_k = E psi(k dt, u_k, y_k): the sampled regressor of :meth:`ContinuousLTV.discretize`."""
+    """Phi_k = E_k psi(k dt, u_k, y_k): the sampled regressor of :meth:`ContinuousLTV.discretize`
+    (``E`` one matrix, or stacked over time)."""
 
-    E: Float[Array, "n n"]
+    E: Float[Array, "n n"] | Float[Array, "T n n"]
     psi: Callable
     dt: float = eqx.field(static=True)
 
     def __call__(self, k, u, y):
-        return self.E @ self.psi(k * self.dt, u, y)
+        return at_time(self.E, k) @ self.psi(k * self.dt, u, y)
+
+
+class SampledMatrix(eqx.Module):
+    """M_k = matrix(k dt): a matrix function of time read at the sample times."""
+
+    matrix: Callable
+    dt: float = eqx.field(static=True)
+
+    def __call__(self, k):
+        return self.matrix(k * self.dt)
 
 
 class DiscreteLTV(eqx.Module):
-    """x_{k+1} = F x_k + B u_k + Phi(k, u_k, y_k) theta,  y_k = H x_k (arrays or callables of k)."""
+    """x_{k+1} = F x_k + B u_k + Phi(k, u_k, y_k) theta,  y_k = H x_k.
 
-    F: Float[Array, "n n"] | Callable
-    B: Float[Array, "n l"] | Callable
-    H: Float[Array, "m n"] | Callable
+    ``F``, ``B``, ``H`` are matrices, matrices stacked over time (a leading axis T, read at k as
+    :class:`~jaxest.LinearGaussian` does) or callables of k.
+    """
+
+    F: Float[Array, "n n"] | Float[Array, "T n n"] | Callable
+    B: Float[Array, "n l"] | Float[Array, "T n l"] | Callable
+    H: Float[Array, "m n"] | Float[Array, "T m n"] | Callable
     phi: Callable
 
     def matrices(self, k):
         """(F_k, B_k, H_k)."""
-        return _value(self.F, k), _value(self.B, k), _value(self.H, k)
+        return tuple(
+            matrix(k) if callable(matrix) else at_time(matrix, k)
+            for matrix in (self.F, self.B, self.H)
+        )
 
 
 class ObserverPrior(eqx.Module):
@@ -164,7 +211,8 @@ class AdaptiveOutput(eqx.Module):
 class AdaptiveResult(AbstractResult):
     """Estimates at the sample times: ``x`` x_hat(t_k), ``theta`` theta_hat(t_k), ``Gamma``
     Gamma(t_k), ``innovation`` y_k - C x_hat, ``excitation`` the smallest eigenvalue of the eq 16
-    Gramian over the window ending at t_k (NaN for the discrete form), ``status`` bits
+    Gramian over the window ending at t_k (for the discrete form: of its counterpart, see
+    :class:`DiscreteAdaptiveObserver`), ``status`` bits
     (:class:`~jaxest.observers.ObserverStatus`)."""
 
     flags = Status
@@ -357,23 +405,53 @@ class DiscreteState(eqx.Module):
     P_pred: Float[Array, "n n"]
     theta: Float[Array, " p"]
     Ups_pred: Float[Array, "n p"]
-    theta_cov: Float[Array, "p p"]
+    theta_info: Float[Array, "p p"]  #: J, the information about theta (S_theta^-1)
+    prior_factor: Float[Array, "p p"]  #: L0 with L0 L0^T = prior.theta_cov
+    window: excitation.ExcitationWindow
 
 
 class DiscreteAdaptiveObserver(AbstractEstimator):
-    """The discrete-time adaptive observer (adaptive Kalman filter; docs/papers/adaptive.md).
+    """The discrete-time adaptive observer (adaptive Kalman filter; docs/papers/adaptive.md,
+    discrete adaptive Kalman form), with an excitation monitor and forgetting without windup.
 
-    Kalman part with weights ``Q``, ``R``; the parameter part is recursive least squares with
-    forgetting factor ``forgetting`` (lambda in (0, 1]) on the regressor Omega_k = H Upsilon_k::
+    Kalman part with weights ``Q``, ``R``; the parameter part is recursive least squares on the
+    regressor Omega_k = H Upsilon_k, kept in information form J = S_theta^-1::
 
         P- = F P F^T + Q,  S_k = H P- H^T + R,  K_k = P- H^T S_k^{-1},  P = (I - K_k H) P-
         Upsilon_k = (I - K_k H)(F Upsilon_{k-1} + Phi_{k-1})
-        Omega_k = H (F Upsilon_{k-1} + Phi_{k-1})
-        Lambda_k = (lambda S_k + Omega_k S_theta Omega_k^T)^{-1}
-        Gain_k = S_theta Omega_k^T Lambda_k
-        S_theta <- (S_theta - S_theta Omega_k^T Lambda_k Omega_k S_theta) / lambda
+        Omega_k = H (F Upsilon_{k-1} + Phi_{k-1}),  M_k = Omega_k^T S_k^{-1} Omega_k
+        J_k = lambda_k J_{k-1} + (1 - lambda_k) J_0 + M_k,  J_0 = prior.theta_cov^-1
+        Gain_k = J_k^{-1} Omega_k^T S_k^{-1}
         e_k = y_k - H (F x + B u + Phi theta),  theta_k = theta_{k-1} + Gain_k e_k
         x_k = F x + B u + Phi theta_{k-1} + K_k e_k + Upsilon_k (theta_k - theta_{k-1})
+
+    With lambda_k = lambda and no J_0 term this is the paper's recursion (S_theta <- (S_theta -
+    S_theta Omega^T Lambda Omega S_theta) / lambda); M_k is the information y_k carries about
+    theta.
+
+    **Excitation monitor** (the discrete counterpart of eq 16): W_k, the sum of M_j over the last
+    ``excitation_window`` steps (j <= k), is the information the window's measurements carry
+    about theta. ``excitation`` is the smallest eigenvalue of L0^T W_k L0 (L0 L0^T =
+    prior.theta_cov): the window's information in units of the prior's. Below
+    ``excitation_threshold`` (once the window is full) the status carries ``NOT_EXCITED``: the
+    window told less about theta than the prior did.
+
+    **Forgetting without windup.** Exponential forgetting, J_k = lambda J_{k-1} + M_k, removes
+    (1 - lambda) J per step whether or not data arrive: without excitation S_theta grows like
+    lambda^-k (covariance windup: lambda = 0.99 for 40 s at dt = 0.01 gives S_theta ~ 1e17 and,
+    when the input returns, a one-sample fit of noise). Here the forgetting is bounded by the
+    information that arrives: lambda_k = max(lambda, 1 - mu_k), with mu_k the smallest
+    eigenvalue of L_J^-1 (W_k / N) L_J^-T (J_{k-1} = L_J L_J^T, N = ``excitation_window``), the
+    window's average information per step relative to J, so (1 - lambda_k) J never exceeds
+    W_k / N in the least-informed direction. Under steady excitation W_k / N = (1 - lambda) J
+    and lambda_k = lambda (plain exponential forgetting); as the excitation fades, lambda_k -> 1
+    and what was learnt is kept, so the estimate holds its accuracy through an unexcited
+    interval instead of relaxing; the price is slower tracking after the excitation weakens
+    for good. The term (1 - lambda_k) J_0 (stabilised forgetting, Kulhavy & Zarrop 1993) keeps
+    J >= J_0: S_theta never exceeds ``prior.theta_cov``. Chosen over a trace bound on S_theta
+    (a tuning constant that ignores direction) and directional forgetting (which forgets along
+    any regressor direction however weak, so a fading scalar regressor still winds up, and needs
+    a dead zone). lambda_k is treated as a constant by gradients.
 
     Following the jaxest convention the step updates with y_k then predicts to k + 1 with u_k,
     so the state carries F x + B u + Phi theta, P- and F Upsilon + Phi. ``prior`` is on x_0
@@ -383,6 +461,8 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
     Q: Float[Array, "n n"]
     R: Float[Array, "m m"]
     forgetting: float = eqx.field(static=True, default=1.0)
+    excitation_window: int = eqx.field(static=True, default=200)
+    excitation_threshold: float = eqx.field(static=True, default=1.0)
 
     def __check_init__(self):
         check_matrix("Q", self.Q, square=True, psd=True)
@@ -405,41 +485,66 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
             if np.shape(value) != want:
                 raise ValueError(f"{name}: expected shape {want}, got {np.shape(value)}")
         dtype = jnp.result_type(prior.x)
+        prior_factor = cholesky(jnp.asarray(prior.theta_cov, dtype))
         return DiscreteState(
             x_pred=jnp.asarray(prior.x, dtype),
             P_pred=jnp.asarray(prior.P, dtype),
             theta=jnp.asarray(prior.theta, dtype),
             Ups_pred=jnp.zeros((n, p), dtype),
-            theta_cov=jnp.asarray(prior.theta_cov, dtype),
+            theta_info=chol_inverse(prior_factor),
+            prior_factor=prior_factor,
+            window=excitation.empty_window(self.excitation_window, p, dtype),
         )
+
+    def forgetting_factor(self, info, window: excitation.ExcitationWindow):
+        """lambda_k = max(lambda, 1 - mu_k): mu_k is the window's average information per step
+        relative to J (smallest eigenvalue of L_J^-1 W L_J^-T / N, J = L_J L_J^T), so the
+        information forgotten per step, (1 - lambda_k) J, never exceeds what arrives on average.
+        Treated as a constant by gradients."""
+        if self.forgetting == 1:
+            return 1.0
+        L = cholesky(info)
+        rate = excitation.gramian(window) / window.increments.shape[0]
+        whitened = solve_triangular(L, solve_triangular(L, rate, lower=True).T, lower=True)
+        mu = excitation.smallest_eigenvalue(jax.lax.stop_gradient(symmetrize(whitened)))
+        return jnp.maximum(self.forgetting, 1 - mu)
 
     def step(self, model: DiscreteLTV, state: DiscreteState, k, y, u, key=None):
         F, B, H = model.matrices(k)
         n = F.shape[-1]
-        S = H @ state.P_pred @ H.T + self.R
-        K = jnp.linalg.solve(S, H @ state.P_pred).T
+        S_factor = cholesky(H @ state.P_pred @ H.T + self.R)
+        K = cho_solve_lower(S_factor, H @ state.P_pred).T
         I_KH = jnp.eye(n, dtype=F.dtype) - K @ H
         P = symmetrize(I_KH @ state.P_pred)
         Omega = H @ state.Ups_pred
-        St = state.theta_cov
-        inner = self.forgetting * S + Omega @ St @ Omega.T
-        gain = jnp.linalg.solve(inner, Omega @ St).T  # S_theta Omega^T Lambda
-        theta_cov = symmetrize((St - gain @ Omega @ St) / self.forgetting)
+        S_inv_Omega = cho_solve_lower(S_factor, Omega)
+        increment = symmetrize(Omega.T @ S_inv_Omega)  # the information y_k carries about theta
+        window = excitation.push(state.window, increment)
+        L0 = state.prior_factor
+        level = excitation.smallest_eigenvalue(
+            jax.lax.stop_gradient(L0.T @ excitation.gramian(window) @ L0)
+        )
+        not_excited = excitation.excitation_status(window, level, self.excitation_threshold)
+        lam = self.forgetting_factor(state.theta_info, window)
+        prior_info = chol_inverse(L0)
+        info = symmetrize(lam * state.theta_info + (1 - lam) * prior_info + increment)
+        gain = cho_solve_lower(cholesky(info), S_inv_Omega.T)  # J^-1 Omega^T S^-1
         e = y - H @ state.x_pred
         theta = state.theta + gain @ e
         Ups = I_KH @ state.Ups_pred
         x = state.x_pred + K @ e + Ups @ (theta - state.theta)
+        status = check_finite_status(x, theta, P, info) | not_excited
         Phi = model.phi(k, u, y)
-        status = check_finite_status(x, theta, P, theta_cov)
-        nan = jnp.full((), jnp.nan, x.dtype)
         new = DiscreteState(
             x_pred=F @ x + B @ u + Phi @ theta,
             P_pred=symmetrize(F @ P @ F.T + self.Q),
             theta=theta,
             Ups_pred=F @ Ups + Phi,
-            theta_cov=theta_cov,
+            theta_info=info,
+            prior_factor=state.prior_factor,
+            window=window,
         )
-        return new, AdaptiveOutput(x, theta, Ups, e, nan, status)
+        return new, AdaptiveOutput(x, theta, Ups, e, level, status)
 
     def result(self, outputs: AdaptiveOutput, final_state) -> AdaptiveResult:
         return adaptive_result(outputs, final_state)

@@ -114,12 +114,18 @@ class SteadyStateSmootherResult(eqx.Module):
 def steady_state_smooth(
     model: LinearGaussian,
     ys: Float[Array, "T m"],
+    *,
     prior: Gaussian,
     gain: SteadyStateGain | None = None,
 ) -> SteadyStateSmootherResult:
     """The non-recursive steady-state fixed-interval smoother, eq 15: the steady-state filter
     (eq 3) forward, then x(t|N) = x(t|t) + sum_{i=1}^{N-t} K_i eps(t+i) by one backward pass.
-    ``gain`` is :func:`steady_state_gain` of the model (solved here when not given)."""
+    ``gain`` is :func:`steady_state_gain` of the model (solved here when not given).
+
+    The filter starts at x(0|-1) = ``prior.mean`` with the steady-state covariance Sigma, which
+    it keeps throughout: ``prior.cov`` is not used (the smoother is exact when it equals Sigma;
+    for the transient from another covariance use :func:`~jaxest.rts_smooth` of a
+    :class:`~jaxest.KalmanFilter` run)."""
     gain = steady_state_gain(model) if gain is None else gain
     filtered = run(SteadyStateKalmanFilter(gain), model, ys, prior=prior)
     mean = filtered.mean + backward_gain_sum(gain, filtered.innovation)

@@ -17,8 +17,8 @@ L_{N,t}(q^-1), whose number of terms N - t changes with t; doing the shift exact
 
 with M = (I - K H)^T Phi^T, which needs the last n innovations. It decays like |lambda_max|^{N-t}:
 negligible far from the end, of the size of the signal near it. :meth:`WienerSmoother.smooth`
-adds it when given ``final_innovations`` (then eq 10 reproduces eq 15 exactly) and otherwise runs
-the theorem as printed. It enters as the terminal value of the backward recursion.
+adds it from ``final_innovations`` (then eq 10 reproduces eq 15 exactly); the argument is required,
+and only an explicit ``None`` runs the theorem as printed. It enters as the terminal value of the backward recursion.
 
 With the optimal initial values (the steady-state smoother of eq 15 at t < n) the smoother equals
 eq 15; any other start adds delta(t) with Psi(q^-1) delta(t) = 0 (eq 17), a mix of lambda_i^t over
@@ -96,12 +96,15 @@ class WienerSmoother(eqx.Module):
         self,
         ys: Float[Array, "T m"],
         initial_values: Float[Array, "n n"],
-        final_innovations: Float[Array, "n m"] | None = None,
+        final_innovations: Float[Array, "n m"] | None,
     ) -> Float[Array, "T n"]:
         """Eq 10: x(t|N) for t = 0..N (T = N + 1 samples), started from
-        ``initial_values`` = x(0|N), ..., x(n-1|N). With ``final_innovations`` (the steady-state
-        filter's eps(N-n+1..N), see :meth:`final_innovations`) the end term is included and the
-        result is exact; without it, it is the theorem as printed."""
+        ``initial_values`` = x(0|N), ..., x(n-1|N).
+
+        ``final_innovations`` is required: the steady-state filter's eps(N-n+1..N) (the second
+        value of :meth:`optimal_start`) include the end term, and the result is exact; ``None``
+        asks for the theorem as printed, which is off near t = N by the end term (of the size of
+        the signal there)."""
         n, psi = self.order, self.arma.ma
         if ys.shape[0] <= n + 1:
             raise ValueError(f"ys: need more than {n + 1} samples, got {ys.shape[0]}")
@@ -125,7 +128,7 @@ class WienerSmoother(eqx.Module):
         innovations eps(N-n+1), ..., eps(N) of the end term, from one pass of the steady-state
         smoother with the filter started at x(0|-1) = ``prior_mean``."""
         prior = Gaussian(prior_mean, self.gain.Sigma)
-        return self.start_from(steady_state_smooth(self.model, ys, prior, self.gain))
+        return self.start_from(steady_state_smooth(self.model, ys, prior=prior, gain=self.gain))
 
     def start_from(
         self, steady: SteadyStateSmootherResult
@@ -168,9 +171,9 @@ class WienerSmoother(eqx.Module):
 def wiener_smooth(
     model: LinearGaussian,
     ys: Float[Array, "T m"],
-    prior_mean: Float[Array, " n"] | None = None,
-    initial_values: Float[Array, "n n"] | None = None,
     *,
+    prior: Gaussian | None = None,
+    initial_values: Float[Array, "n n"] | None = None,
     start: str = "optimal",
     radius: float = 0.5,
     end_term: bool = True,
@@ -179,11 +182,12 @@ def wiener_smooth(
 
     - ``start="arbitrary"``: from ``initial_values`` as given;
     - ``start="optimal"``: from the optimal values (eq 15 with the filter started at
-      x(0|-1) = ``prior_mean``), so it equals the steady-state smoother;
+      x(0|-1) = ``prior.mean``), so it equals the steady-state smoother;
     - ``start="eq13"``: from ``initial_values`` with the last k replaced by eq 13.
 
     ``end_term=False`` runs the theorem as printed (see the module docstring). Everything but
-    ``start="arbitrary", end_term=False`` needs ``prior_mean`` (one steady-state smoother pass).
+    ``start="arbitrary", end_term=False`` needs ``prior`` (one steady-state smoother pass, which
+    uses ``prior.mean`` only: see :func:`~jaxest.steady_state_smooth`).
     """
     if start not in ("arbitrary", "optimal", "eq13"):
         raise ValueError(f"start: expected 'arbitrary', 'optimal' or 'eq13', got {start!r}")
@@ -196,10 +200,12 @@ def wiener_smooth(
             f"initial_values: start={start!r} needs an ({n}, {n}) array x(0|N)..x({n - 1}|N)"
         )
     if start == "arbitrary" and not end_term:
-        return smoother.smooth(ys, initial_values)
-    if prior_mean is None or jnp.shape(prior_mean) != (n,):
-        raise ValueError(f"prior_mean: needs the prior mean x(0|-1), shape ({n},)")
-    optimal, final_innovations = smoother.optimal_start(ys, prior_mean)
+        return smoother.smooth(ys, initial_values, None)
+    if prior is None or jnp.shape(prior.mean) != (n,):
+        raise ValueError(
+            f"prior: start={start!r} needs a Gaussian prior on x(0), mean shape ({n},)"
+        )
+    optimal, final_innovations = smoother.optimal_start(ys, prior.mean)
     x0 = {"arbitrary": initial_values, "optimal": optimal}.get(start)
     if start == "eq13":
         x0 = smoother.eq13_initial_values(initial_values, optimal, radius)

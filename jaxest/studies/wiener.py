@@ -72,7 +72,7 @@ def single_realisation(smoother: WienerSmoother, key, model):
     chosen = smoother.eq13_initial_values(arbitrary, optimal)
     starts = {"arbitrary": arbitrary, "eq13": chosen, "optimal": optimal}
     paths = {name: np.asarray(smoother.smooth(ys, x0, final)) for name, x0 in starts.items()}
-    printed = np.asarray(smoother.smooth(ys, optimal))  # the theorem as printed (no end term)
+    printed = np.asarray(smoother.smooth(ys, optimal, None))  # the theorem as printed (no end term)
     return np.asarray(sim.states), ys, starts, paths, printed
 
 
@@ -88,7 +88,7 @@ def monte_carlo(smoother: WienerSmoother, model, runs: int, key):
     def one(k):
         sim = simulate(model, prior, N + 1, k)
         ys = sim.y
-        steady = steady_state_smooth(model, ys, prior, smoother.gain)  # eq 15
+        steady = steady_state_smooth(model, ys, prior=prior, gain=smoother.gain)  # eq 15
         optimal, final = smoother.start_from(steady)
         rts = rts_smooth(model, run_filter(KalmanFilter(), model, ys, prior=prior))
         estimates = {
@@ -99,7 +99,7 @@ def monte_carlo(smoother: WienerSmoother, model, runs: int, key):
                 ys, smoother.eq13_initial_values(arbitrary, optimal), final
             ),
             "wiener_arbitrary": smoother.smooth(ys, arbitrary, final),
-            "wiener_as_printed": smoother.smooth(ys, optimal),
+            "wiener_as_printed": smoother.smooth(ys, optimal, None),
         }
         errors = {name: (x - sim.states) ** 2 for name, x in estimates.items()}
         return errors, jnp.trace(rts.cov, axis1=-2, axis2=-1)
@@ -179,7 +179,9 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
 
         states, ys, starts, paths, printed = single_realisation(smoother, key_single, model)
         reference = paths["optimal"]
-        steady = np.asarray(steady_state_smooth(model, ys, Gaussian(jnp.zeros(2), jnp.eye(2))).mean)
+        steady = np.asarray(
+            steady_state_smooth(model, ys, prior=Gaussian(jnp.zeros(2), jnp.eye(2))).mean
+        )
         deltas = {name: path - reference for name, path in paths.items()}
         size0 = float(np.linalg.norm(deltas["arbitrary"][0]))
         threshold = SETTLING_FRACTION * size0
