@@ -21,7 +21,7 @@ def test_quick_study_writes_the_summary(tmp_path):
         assert cond["rate_hz"] in (10, 32) and cond["dtype"] in ("float64", "float32")
         for f in ("ekf", "svd_ekf", "svd_improved"):
             F = cond[f]
-            assert set(F) >= {"rmse", "param_error", "diverged_runs", "runs", "nees"}
+            assert set(F) >= {"rmse", "param_error", "diverged_runs", "runs", "all", "nis"}
             assert F["runs"] == 3 and set(F["rmse"]) == set(svd_ekf.KINEMATIC_STATES)
             assert F["rmse"]["theta"] < 0.5  # deg: the filters track the attitude
     if data is None:
@@ -59,3 +59,29 @@ def test_delay_estimate_recovers_a_simulated_vane_lag():
     assert abs(alpha - 0.08) < 1e-9 and beta == 0.0
     assert best["alpha"]["sim"] == alpha and np.all(np.isfinite(profiles["alpha"]["sim"]))
     assert jnp.argmax(jnp.asarray(profiles["alpha"]["sim"])) > 0
+
+
+def test_nees_groups_and_band_against_numpy_and_scipy():
+    """Each group's NEES uses its marginal covariance (NumPy solves on the blocks); the band is
+    scipy's chi-square quantiles of runs * dof, divided by runs."""
+    import numpy as np
+    import scipy.stats
+
+    rng = np.random.default_rng(0)
+    n, n_kin = svd_ekf.N_STATE, svd_ekf.N_KIN
+    A = rng.normal(size=(n, n))
+    P = A @ A.T + n * np.eye(n)
+    e = rng.normal(size=n)
+    with jax.enable_x64(True):
+        ours = np.asarray(svd_ekf.nees_by_group(jax.numpy.asarray(e), jax.numpy.asarray(P)))
+    kin, par = slice(0, n_kin), slice(n_kin, n)
+    expect = [
+        e @ np.linalg.solve(P, e),
+        e[kin] @ np.linalg.solve(P[kin, kin], e[kin]),
+        e[par] @ np.linalg.solve(P[par, par], e[par]),
+    ]
+    np.testing.assert_allclose(ours, expect, rtol=1e-10)
+    low, high = svd_ekf.nees_band(100, 23)
+    np.testing.assert_allclose(
+        [low, high], scipy.stats.chi2.ppf([0.025, 0.975], 2300) / 100, rtol=1e-9
+    )

@@ -18,6 +18,7 @@
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 
 import equinox as eqx
@@ -33,6 +34,7 @@ from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF
 from jaxest.plot import plt, save
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
+from jaxest.setmembership.fdi import chi_square_threshold
 from jaxest.systems import flight, flight_data, flight_sim as sim
 from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
 from jaxest.tune import fit
@@ -113,19 +115,41 @@ def model_for(rate_hz, dtype, noise_scale=1.0, lever_arms=sim.LEVER_ARMS, output
     )
 
 
+#: NEES groups: all 23 states, the 7 kinematic states, the 16 sensor parameters (their dimensions)
+NEES_GROUPS = {"all": N_STATE, "kinematic": N_KIN, "parameters": N_STATE - N_KIN}
+
+
+def nees_by_group(err, cov):
+    """NEES of one step for the groups of :data:`NEES_GROUPS`, each with its marginal covariance:
+    one batched Cholesky factorisation of P and of P with the parameters ordered first (the
+    leading block of a Cholesky factor is the factor of the leading block of P)."""
+    order = np.r_[N_KIN:N_STATE, 0:N_KIN]
+    covs = jnp.stack([cov, cov[order][:, order]])
+    errs = jnp.stack([err, err[order]])
+    whitened = jax.scipy.linalg.solve_triangular(
+        jnp.linalg.cholesky(covs), errs[..., None], lower=True
+    )[..., 0]
+    squares = whitened**2
+    n_par = N_STATE - N_KIN
+    return jnp.stack([squares[0].sum(), squares[0, :N_KIN].sum(), squares[1, :n_par].sum()])
+
+
 def run_metrics(estimator, model, ys, inputs, mean0, P0, truth, settle: int):
     """Per-run summary of one filter run: squared state errors averaged over time after ``settle``
-    steps, final parameter errors and standard deviations, mean NEES, status."""
+    steps, final parameter errors and standard deviations, NEES per group over time, NIS per
+    output channel averaged over time, status."""
     result = run_filter(estimator, model, ys, inputs=inputs, prior=Gaussian(mean0, P0))
     err = (result.mean - truth).astype(jnp.float64)
     cov = result.cov.astype(jnp.float64)
-    nees = jax.vmap(lambda e, P: e @ jnp.linalg.solve(P, e))(err, cov)
+    innovation_var = jnp.diagonal(result.innovation_cov, axis1=-2, axis2=-1)
+    nis = (result.innovation**2 / innovation_var).astype(jnp.float64)
     status = jnp.bitwise_or.reduce(result.status)
     return {
         "sq_err": jnp.mean(err[settle:, :N_KIN] ** 2, axis=0),
         "param_err": err[-1, N_KIN:],
         "final_std": jnp.sqrt(jnp.diagonal(cov[-1])),
-        "nees": jnp.mean(nees),
+        "nees_t": jax.vmap(nees_by_group)(err, cov),
+        "nis": jnp.mean(nis, axis=0),
         "status": status,
     }
 
@@ -144,8 +168,37 @@ def _monte_carlo(estimator, model, batch, P0, settle, chunk):
 
 def diverged(metrics):
     """Runs that flagged a status bit, produced NaN or whose NEES exceeds ``NEES_DIVERGED``."""
-    nees = metrics["nees"]
+    nees = np.mean(metrics["nees_t"][..., 0], axis=-1)
     return (metrics["status"] != Status.OK) | ~np.isfinite(nees) | (nees > NEES_DIVERGED)
+
+
+@functools.lru_cache
+def nees_band(runs: int, dof: int, coverage: float = 0.95) -> tuple[float, float]:
+    """The two-sided ``coverage`` band of the NEES averaged over ``runs`` consistent runs at one
+    time: chi-square(runs dof) / runs (Bar-Shalom, Li & Kirubarajan 2001, sec 5.4.2)."""
+    tail = (1 - coverage) / 2
+    low = chi_square_threshold(runs * dof, 1 - tail) / runs
+    return low, chi_square_threshold(runs * dof, tail) / runs
+
+
+def consistency(metrics, use):
+    """Time-averaged NEES per group and NIS per channel over the runs ``use``, with the 95 % band
+    of the run average at one time and the fraction of time steps inside it."""
+    runs = int(np.sum(use))
+    nees_t = metrics["nees_t"][use]  # (runs, T, groups)
+    out = {}
+    for g, (group, dof) in enumerate(NEES_GROUPS.items()):
+        average = np.mean(nees_t[..., g], axis=0)  # the run average at each time
+        low, high = nees_band(runs, dof)
+        out[group] = {
+            "nees": float(np.mean(average)),
+            "expected": dof,
+            "band_95": [low, high],
+            "fraction_in_band": float(np.mean((average >= low) & (average <= high))),
+        }
+    nis = np.mean(metrics["nis"][use], axis=0)
+    out["nis"] = {o: float(nis[i]) for i, o in enumerate(OUTPUTS)}
+    return out
 
 
 def summarise(metrics, common):
@@ -166,8 +219,7 @@ def summarise(metrics, common):
         "lost_definiteness_runs": int(np.sum(lost_pd)),
         "runs": int(bad.shape[0]),
         "compared_runs": int(np.sum(use)),
-        "nees": float(np.mean(metrics["nees"][use])) if np.any(use) else float("nan"),
-        "nees_expected": N_STATE,
+        **(consistency(metrics, use) if np.any(use) else {}),
     }
 
 
@@ -200,6 +252,24 @@ def plot_states_and_fits(path, t, truth, estimate, measured, computed, title):
     axes[0, 0].legend(fontsize=8)
     axes[1, 0].legend(fontsize=8)
     fig.suptitle(title)
+    save(fig, path, dpi=90)
+
+
+def nees_figure(path, nees_runs):
+    """NEES of each group over time, averaged over the runs, with the 95 % band of that average."""
+    fig, axes = plt.subplots(len(nees_runs), len(NEES_GROUPS), figsize=(14, 3.2 * len(nees_runs)),
+                             squeeze=False)  # fmt: skip
+    for row, (rate, nees_t) in zip(axes, nees_runs.items(), strict=True):
+        t = np.arange(nees_t.shape[1]) / rate
+        for g, (ax, (group, dof)) in enumerate(zip(row, NEES_GROUPS.items(), strict=True)):
+            low, high = nees_band(nees_t.shape[0], dof)
+            ax.fill_between(t, low, high, color="0.85", label="95 % band")
+            ax.axhline(dof, color="k", lw=0.8)
+            ax.plot(t, np.mean(nees_t[..., g], axis=0), "r-", lw=1, label="run average")
+            ax.set_title(f"{group} ({dof}), {rate} Hz")
+            ax.set_xlabel("t (s)")
+        row[0].legend(fontsize=8)
+    fig.suptitle(f"SVD-EKF NEES, simulated elevator maneuver, {nees_t.shape[0]} runs, float64")
     save(fig, path, dpi=90)
 
 
@@ -434,6 +504,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
         "observable_ratio": OBSERVABLE_RATIO, "units": "m/s, deg, deg/s, m/s^2, m",
     }}  # fmt: skip
     tables = []
+    nees_runs = {}  # rate -> the SVD-EKF's NEES over time of the float64 elevator runs
     figures = () if quick else ((10, 1), (32, 2))  # --quick: only the real-data figure
     total = len(conditions) * len(FILTERS) + len(figures) + ((2 if quick else 6) if data_dir else 0)
     with Progress(NAME, total) as progress:
@@ -464,8 +535,14 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
                 }
             for f in FILTERS:
                 F = entry[f]
-                tables.append([name, f, F["diverged_runs"], F["runs"], F["nees"],
+                nees = [F[g]["nees"] if g in F else float("nan") for g in NEES_GROUPS]
+                nis = np.mean(list(F["nis"].values())) if "nis" in F else float("nan")
+                tables.append([name, f, F["diverged_runs"], F["runs"], *nees, nis,
                                *[F["rmse"][s] for s in KINEMATIC_STATES]])  # fmt: skip
+            if dtype_name == "float64" and maneuver == "elevator":
+                nees_runs[rate] = metrics["svd_ekf"]["nees_t"][common]
+        if nees_runs:
+            nees_figure(out / "fig_nees_elevator.png", nees_runs)
         for rate, fig in figures:
             maneuver = "elevator" if quick else "aileron"
             path = out / f"fig{fig}_states_{rate}hz.png"
@@ -597,8 +674,11 @@ def reconstruct_hfb320(out, data_dir):
 def write_tables(out, summary, rows):
     text = "# SVD-EKF flight estimation: simulated Monte Carlo\n\n"
     text += "State RMSE after the first second (m/s, deg, m), over the runs no filter lost.\n\n"
-    text += markdown_table(["condition", "filter", "diverged", "runs", "NEES (23)",
-                            *KINEMATIC_STATES], rows)  # fmt: skip
+    text += "NEES of all states (expected 23), the kinematic states (7) and the sensor parameters "
+    text += "(16), averaged over time and runs; NIS averaged over the six output channels "
+    text += "(expected 1; per channel in summary.json).\n\n"
+    text += markdown_table(["condition", "filter", "diverged", "runs", "NEES (23)", "kin (7)",
+                            "par (16)", "NIS (1)", *KINEMATIC_STATES], rows)  # fmt: skip
     text += "\n## Parameter observability (posterior std / prior std, SVD-EKF)\n\n"
     obs = summary["observability"]
     text += markdown_table(["parameter", *obs], [[p, *[obs[m]["std_ratio"][p] for m in obs]]
