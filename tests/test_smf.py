@@ -10,6 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxest as je
 from jaxest import run
 from jaxest.setmembership import fdi
 from jaxest.setmembership.ellipsoid import Ellipsoid
@@ -212,3 +213,32 @@ def test_ill_conditioned_set_is_flagged_at_its_step():
     status = np.asarray(result.status)
     assert status[0] & Status.ILL_CONDITIONED and status[0] & Status.UNBOUNDED
     assert np.all(np.asarray(result.unbounded)) and not np.any(np.asarray(result.inconsistent))
+
+
+def test_state_only_functions_scalar_measurements_and_predicted_sets():
+    """f(x) and a scalar h(x) with ys of shape (T,) give what f(x, u) and a vector h give; the
+    predicted sets saved on request are the prior and the time updates of the filtered sets; an
+    h of the wrong shape is named before tracing."""
+    with jax.enable_x64(True):
+        pendulum = lambda x: jnp.stack([x[0] + 0.1 * x[1], x[1] - 0.1 * jnp.sin(x[0])])
+        short = BoundedNoiseModel(pendulum, lambda x: jnp.sin(x[0]), [1e-3, 1e-3], [0.02])
+        full = BoundedNoiseModel(
+            lambda x, u: pendulum(x), lambda x, u: jnp.sin(x[:1]), [1e-3, 1e-3], [0.02]
+        )
+        prior = Ellipsoid(jnp.array([0.3, 0.0]), 0.01 * jnp.eye(2))
+        ys = 0.3 * jnp.cos(0.3 * jnp.arange(40.0))
+        fields = ("center", "shape", "status", "predicted_center", "predicted_shape")
+        ours = set_membership_filter(short, ys, prior=prior, save=je.SaveAt(fields=fields))
+        reference = set_membership_filter(full, ys[:, None], prior=prior)
+        np.testing.assert_allclose(ours.shape, reference.shape, rtol=1e-13)
+        np.testing.assert_allclose(ours.center, reference.center, rtol=1e-13)
+        assert reference.predicted_shape is None  # not kept unless asked for
+        np.testing.assert_array_equal(ours.predicted_shape[0], prior.shape)
+        smf = SetMembershipFilter()
+        for k in (0, 17, 38):
+            step = smf.predict(short, Ellipsoid(ours.center[k], ours.shape[k]), None, k)
+            np.testing.assert_allclose(ours.predicted_shape[k + 1], step.shape, rtol=1e-13)
+            np.testing.assert_allclose(ours.predicted_center[k + 1], step.center, rtol=1e-13)
+        wrong = BoundedNoiseModel(pendulum, lambda x: x, [1e-3, 1e-3], [0.02])
+        with pytest.raises(ValueError, match=r"^model.h: expected it to return shape \(1,\)"):
+            set_membership_filter(wrong, ys, prior=prior)

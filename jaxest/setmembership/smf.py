@@ -40,6 +40,7 @@ from jaxtyping import Array, Bool, Float, Int
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._run import run
 from jaxest._status import finite_status as check_finite_status
+from jaxest.models import call_with_optional
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
     add_box,
@@ -56,8 +57,9 @@ class BoundedNoiseModel(eqx.Module):
     """x_{k+1} = f(x_k, u_k) + w_k,  y_k = h(x_k, u_k) + v_k,  |w| <= process_bound,
     |v| <= measurement_bound (element-wise half-widths of the boxes W and V, eqs 3-4).
 
-    The bounds may be given as Python lists (converted to arrays). ``f(x, u)`` and ``h(x, u)``
-    are written in ``jax.numpy`` (``u`` is ``None`` without inputs).
+    The bounds may be given as Python lists (converted to arrays). ``f`` and ``h`` are written in
+    ``jax.numpy`` and take ``(x)``, ``(x, u)`` or ``(x, u, k)`` (``u`` is ``None`` without
+    inputs); with one measurement ``h`` may return a scalar.
     The remainder bounds default to the automatic interval bound of
     :func:`~jaxest.setmembership.interval.remainder_bound`; ``f_remainder(center, shape, u)`` /
     ``h_remainder(center, shape, u)`` may replace it by a closed form (it must be guaranteed).
@@ -78,9 +80,18 @@ class BoundedNoiseModel(eqx.Module):
     def obs_dim(self) -> int:
         return self.measurement_bound.shape[-1]
 
-    def linearise(self, fn, custom_bound, center, shape, u):
-        """``(fn(c), d fn/dx (c), remainder half-widths over E(c, P))``."""
-        g = lambda x: fn(x, u)
+    def transition(self, x, u=None, k=0) -> Float[Array, " n"]:
+        """f(x, u) (step ``k``)."""
+        return jnp.reshape(call_with_optional(self.f, x, u, k), (self.state_dim,))
+
+    def observation(self, x, u=None, k=0) -> Float[Array, " m"]:
+        """h(x, u) as a vector of the m measurements (step ``k``)."""
+        return jnp.reshape(call_with_optional(self.h, x, u, k), (self.obs_dim,))
+
+    def linearise(self, fn, custom_bound, center, shape, u, k):
+        """``(fn(c), d fn/dx (c), remainder half-widths over E(c, P))`` for ``fn`` one of
+        :meth:`transition`, :meth:`observation`."""
+        g = lambda x: fn(x, u, k)
         value, jac = g(center), jax.jacfwd(g)(center)
         if custom_bound is not None:
             bound = custom_bound(center, shape, u)
@@ -101,6 +112,8 @@ class SMFOutput(eqx.Module):
     remainder: Float[Array, " n"] | None  #: remainder bound of f for the time update after k
     measurement_remainder: Float[Array, " m"] | None  #: remainder bound of h used at step k
     status: Int[Array, ""] | None
+    predicted_center: Float[Array, " n"] | None = None  #: the set before y_k
+    predicted_shape: Float[Array, "n n"] | None = None
 
 
 class SMFResult(AbstractResult):
@@ -108,7 +121,9 @@ class SMFResult(AbstractResult):
 
     ``remainder[k]`` is the bound of f's remainder (eq 11) used to predict from k to k+1 and
     ``measurement_remainder[k]`` that of h (eq 20) used at step k. Where ``unbounded`` the shape
-    is +inf on the diagonal (the set is the whole space).
+    is +inf on the diagonal (the set is the whole space). ``predicted_center``/``predicted_shape``
+    are the sets before y_k (the prior at k = 0), kept when asked for:
+    ``run(..., save=SaveAt(fields=(..., "predicted_center", "predicted_shape")))``.
     """
 
     flags = Status
@@ -121,6 +136,8 @@ class SMFResult(AbstractResult):
     status: Int[Array, " T"] | None = None
     any_status: Int[Array, ""] | None = None
     saved: object = None
+    predicted_center: Float[Array, "T n"] | None = None
+    predicted_shape: Float[Array, "T n n"] | None = None
 
     @property
     def inconsistent(self) -> Bool[Array, " T"]:
@@ -152,6 +169,7 @@ class SetMembershipFilter(AbstractEstimator):
     """
 
     max_radius: float | None = None
+    default_fields = ("center", "shape", "remainder", "measurement_remainder", "status")
 
     def init(self, model: BoundedNoiseModel, prior: Ellipsoid) -> SMFState:
         center, shape = jnp.asarray(prior.center), jnp.asarray(prior.shape)
@@ -177,9 +195,9 @@ class SetMembershipFilter(AbstractEstimator):
         )
         return trusted, conditioned
 
-    def measurement_update(self, model, center, shape, y, u):
+    def measurement_update(self, model, center, shape, y, u, k=0):
         """Eqs 18-36; returns ``(center, shape, empty, remainder)``."""
-        h_c, H, alpha = model.linearise(model.h, model.h_remainder, center, shape, u)
+        h_c, H, alpha = model.linearise(model.observation, model.h_remainder, center, shape, u, k)
         half_widths = model.measurement_bound + alpha  # eq 21
         new_center, new_shape, empty = center, shape, jnp.zeros((), bool)
         for i in range(H.shape[0]):
@@ -197,26 +215,27 @@ class SetMembershipFilter(AbstractEstimator):
             alpha,
         )
 
-    def time_update(self, model, center, shape, u):
+    def time_update(self, model, center, shape, u, k=0):
         """Eqs 7-17; returns ``(center, shape, remainder)``."""
-        f_c, F, alpha = model.linearise(model.f, model.f_remainder, center, shape, u)
+        f_c, F, alpha = model.linearise(model.transition, model.f_remainder, center, shape, u, k)
         shape = add_box(F @ shape @ F.T, model.process_bound + alpha)  # eqs 15-17, 12-13
         return f_c, shape, alpha
 
-    def predict(self, model: BoundedNoiseModel, prior: Ellipsoid, u=None) -> Ellipsoid:
-        """The time update of ``prior`` alone: the set one step later, without a measurement."""
-        center, shape, _ = self.time_update(model, prior.center, prior.shape, u)
+    def predict(self, model: BoundedNoiseModel, prior: Ellipsoid, u=None, k=0) -> Ellipsoid:
+        """The time update of ``prior`` (at step ``k``) alone: the set one step later, without a
+        measurement."""
+        center, shape, _ = self.time_update(model, prior.center, prior.shape, u, k)
         return Ellipsoid(center, shape)
 
     def check(self, model, ys, inputs, prior) -> None:
         check_smf_arguments(model, ys, prior, inputs)
 
     def step(self, model, state: SMFState, k, y, u, key=None):
-        c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u)
+        c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u, k)
         empty = empty & ~state.unbounded
         trusted, conditioned = self._trusted(model, c, P)
         unbounded = state.unbounded | ~trusted  # flagged at the step the filtered set goes bad
-        c_next, P_next, alpha_f = self.time_update(model, c, P, u)
+        c_next, P_next, alpha_f = self.time_update(model, c, P, u, k)
         trusted_next, conditioned_next = self._trusted(model, c_next, P_next)
         unbounded_next = unbounded | ~trusted_next
         frozen = lambda new, old: jnp.where(unbounded_next, old, new)
@@ -238,6 +257,8 @@ class SetMembershipFilter(AbstractEstimator):
             remainder=jnp.where(unbounded, jnp.inf, alpha_f),
             measurement_remainder=jnp.where(state.unbounded, jnp.inf, alpha_h),
             status=status,
+            predicted_center=state.center,
+            predicted_shape=jnp.where(state.unbounded, everything, state.shape),
         )
         return new_state, output
 
@@ -249,6 +270,8 @@ class SetMembershipFilter(AbstractEstimator):
             remainder=outputs.remainder,
             measurement_remainder=outputs.measurement_remainder,
             status=outputs.status,
+            predicted_center=outputs.predicted_center,
+            predicted_shape=outputs.predicted_shape,
         )
 
 
@@ -261,10 +284,12 @@ def set_membership_filter(
     estimator: SetMembershipFilter | None = None,
     **run_options,
 ) -> SMFResult:
-    """Run the SMF over ``ys`` (shape (T, m); NaN = no measurement) from ``prior``, the ellipsoid
-    holding the state at the first measurement: :func:`jaxest.run` with the default filter.
-    Arguments are checked before tracing."""
+    """Run the SMF over ``ys`` (shape (T, m), or (T,) with one measurement; NaN = no
+    measurement) from ``prior``, the ellipsoid holding the state at the first measurement:
+    :func:`jaxest.run` with the default filter. Arguments are checked before tracing."""
     estimator = estimator or SetMembershipFilter()
+    if isinstance(model, BoundedNoiseModel) and model.obs_dim == 1 and jnp.ndim(ys) == 1:
+        ys = jnp.reshape(ys, (-1, 1))
     return run(estimator, model, ys, prior=prior, inputs=inputs, **run_options)
 
 
@@ -294,3 +319,16 @@ def check_smf_arguments(model, ys, prior, inputs):
     if np.shape(prior.center) != (n,):
         raise ValueError(f"prior.center: expected shape ({n},), got {np.shape(prior.center)}")
     check_matrix("prior.shape", prior.shape, (n, n), spd=True)
+    u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
+    for name, fn, size in (("model.f", model.f, n), ("model.h", model.h, m)):
+        try:
+            value = jax.eval_shape(
+                lambda x, u, fn=fn: call_with_optional(fn, x, u, 0), prior.center, u0
+            )
+        except Exception as error:  # the user's function failed on a state of the prior's shape
+            raise ValueError(
+                f"{name}: calling it with x of shape ({n},) and the first input failed: "
+                f"{type(error).__name__}: {error}"
+            ) from error
+        if value.shape not in ((size,), ()) or (value.shape == () and size != 1):
+            raise ValueError(f"{name}: expected it to return shape ({size},), got {value.shape}")
