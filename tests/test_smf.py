@@ -134,6 +134,17 @@ def test_isolation_decisions_and_scores():
     assert not m2[:, 1].any()
     both = np.ones((2, 6), bool)  # every filter empty: no sensor isolated by method 2
     assert not np.asarray(fdi.isolation_decisions(both, 2)).any()
+    # three sensors, sensor 0 faulty: filters 1 and 2 (which see it) go empty at different steps
+    three = np.zeros((3, 8), bool)
+    three[1, [2, 6]] = True
+    three[2, 4] = True
+    same = np.asarray(fdi.isolation_decisions(three, 2))
+    assert not same.any()  # never both empty at one step
+    by_step = np.asarray(fdi.isolation_decisions(three, 2, reading="by_step"))
+    np.testing.assert_array_equal(by_step[:, 0], np.arange(8) >= 4)  # once both have been empty
+    assert not by_step[:, 1:].any()
+    with pytest.raises(ValueError, match="^reading:"):
+        fdi.isolation_decisions(three, 2, reading="eventually")
     alarms = np.zeros((4, 10), bool)
     alarms[0, 1] = True  # step 2: a false alarm
     alarms[1, 6] = True  # step 7: delay 2 from fault_start 5

@@ -8,6 +8,11 @@ the EKF + chi-square test it is compared with.
   faulty at the first step where filter i's set is empty.
 - **Isolation, method 2**: a bank of m SMFs, filter i fed every sensor but i; sensor i is
   declared faulty at step k when filter i is consistent and every other filter j != i is empty.
+  The paper's wording allows two readings, both offered (``reading=``): ``"same_step"``, every
+  other filter empty at step k itself, which with m >= 3 isolates at the fault's onset or never
+  (the other filters need not all meet an inconsistency at one step); and ``"by_step"``, every
+  other filter has been empty at some step up to k while filter i has been consistent at every
+  step up to k (an empty set is proof of a fault whenever it happened).
 
 With m = 2 sensors method 2 runs the same two filters as method 1 with the labels swapped
 (all-but-1 = sensor 2 only); it declares sensor i faulty when method 1 does *and* the other
@@ -46,13 +51,20 @@ def bank_masks(m: int, method: int) -> np.ndarray:
     raise ValueError(f"method: expected 1 or 2, got {method}")
 
 
-def isolation_decisions(inconsistent: Bool[Array, "*B m T"], method: int) -> Bool[Array, "*B T m"]:
+def isolation_decisions(
+    inconsistent: Bool[Array, "*B m T"], method: int, reading: str = "same_step"
+) -> Bool[Array, "*B T m"]:
     """decisions[..., k, i]: sensor i is declared faulty at step k, from the bank's per-filter
-    inconsistency flags (filter i of the bank of ``method``); leading axes (runs...) broadcast."""
+    inconsistency flags (filter i of the bank of ``method``); leading axes (runs...) broadcast.
+    ``reading``: method 2's ``"same_step"`` or ``"by_step"`` (module docstring)."""
+    if reading not in ("same_step", "by_step"):
+        raise ValueError(f"reading: expected 'same_step' or 'by_step', got {reading!r}")
     flags = jnp.swapaxes(jnp.asarray(inconsistent), -1, -2)  # (..., T, m)
     if method == 1:
         return flags
     if method == 2:
+        if reading == "by_step":  # empty at some step up to k
+            flags = jnp.cumsum(flags, axis=-2) > 0
         others = jnp.asarray(bank_masks(flags.shape[-1], 2))  # (m, m): j != i
         all_others_empty = jnp.all(jnp.where(others, flags[..., None, :], True), axis=-1)
         return ~flags & all_others_empty
