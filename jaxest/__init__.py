@@ -35,6 +35,7 @@ from jaxest.filters import (
     InformationFilter as InformationFilter,
     InformationMatrix as InformationMatrix,
     KalmanFilter as KalmanFilter,
+    ParallelKalmanFilter as ParallelKalmanFilter,
     SquareRootKF as SquareRootKF,
     SteadyStateGain as SteadyStateGain,
     SteadyStateKalmanFilter as SteadyStateKalmanFilter,
