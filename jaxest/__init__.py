@@ -21,6 +21,7 @@ from jaxest._status import (
     finite_status as finite_status,
     status_where as status_where,
 )
+from jaxest.em import EMResult as EMResult, fit_em as fit_em
 from jaxest.filters import (
     EKF as EKF,
     SVDEKF as SVDEKF,
