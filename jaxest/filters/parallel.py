@@ -104,12 +104,11 @@ def lower_factor(X):
     return jnp.swapaxes(jnp.linalg.qr(jnp.swapaxes(X, -1, -2), mode="r"), -1, -2)
 
 
-def square_factor(X, n: int):
-    """An n x n matrix L with L L^T = X X^T for X of shape (n, p)."""
-    p = X.shape[-1]
-    if p < n:
-        return jnp.concatenate([X, jnp.zeros((n, n - p), X.dtype)], axis=-1)
-    return X if p == n else tria(X)
+def square_factor(X, cols: int):
+    """L with ``cols`` columns and L L^T = X X^T, for X of shape (r, p), r <= cols."""
+    if X.shape[1] > cols:
+        X = tria(X)
+    return jnp.concatenate([X, jnp.zeros((X.shape[0], cols - X.shape[1]), X.dtype)], axis=1)
 
 
 class Element(eqx.Module):
@@ -121,6 +120,18 @@ class Element(eqx.Module):
     eta: Float[Array, " n"]
     info: Float[Array, "n n"]
     logc: Float[Array, ""]
+
+    @property
+    def mean(self):
+        return self.b
+
+    @property
+    def factor(self):
+        return self.cov
+
+    @property
+    def loglik(self):
+        return self.logc
 
 
 def identity_element(n: int, dtype) -> Element:
@@ -154,38 +165,53 @@ def combine_standard(e: Element, l: Element) -> Element:
     )
 
 
-def combine_square_root(e: Element, l: Element) -> Element:
-    """Eq (4) for the earlier element ``e`` and the later ``l`` (factors U = e.cov, Z = l.info)."""
-    n = e.b.shape[0]
-    eye = jnp.eye(n, dtype=e.b.dtype)
-    V = l.info.T @ e.cov  # Z_j^T U_i
+class SquareRootElement(eqx.Module):
+    """Eq (4)'s element in homogeneous coordinates [z; 1]: ``A`` = [[A, b], [0, 1]],
+    ``U`` = [[U], [0]] and ``Z`` with exp(logc - |Z^T [z; 1]|^2 / 2) = p(y's | z)."""
+
+    A: Float[Array, "n+1 n+1"]
+    U: Float[Array, "n+1 n+1"]
+    Z: Float[Array, "n+1 n+1"]
+    logc: Float[Array, ""]
+
+    @property
+    def mean(self):
+        return self.A[:-1, -1]
+
+    @property
+    def factor(self):
+        return self.U[:-1, :-1]
+
+    @property
+    def loglik(self):
+        """logc - |Z^T [z; 1]|^2 / 2 for a prefix, whose Z has only its last row."""
+        return self.logc - 0.5 * jnp.sum(self.Z[-1] ** 2)
+
+
+def combine_square_root(e: SquareRootElement, l: SquareRootElement) -> SquareRootElement:
+    """Eq (4) for the earlier element ``e`` and the later ``l``, in homogeneous coordinates."""
+    N = e.A.shape[0]
+    eye = jnp.eye(N, dtype=e.A.dtype)
+    V = l.Z.T @ e.U
     Xi, Om = lower_factor(jnp.stack([jnp.concatenate([V.T, eye], 1), jnp.concatenate([V, eye], 1)]))
-    W = solve_triangular(
-        Xi, jnp.concatenate([e.cov.T, V.T, e.cov.T @ l.eta[:, None]], 1), lower=True
-    )
-    K, KV, k_eta = W[:, :n], W[:, n : 2 * n], W[:, 2 * n]  # Xi^-1 U^T, Xi^-1 U^T Z, Xi^-1 U^T eta
-    M = eye - K.T @ KV @ l.info.T  # (I + C_i J_j)^-1
-    ZOm = solve_triangular(
-        Om, jnp.concatenate([l.info.T, (l.info.T @ e.b)[:, None]], 1), lower=True
-    )
-    Om_Z, om_b = ZOm[:, :n], ZOm[:, n]  # Om^-1 Z_j^T, Om^-1 Z_j^T b_i
-    U, Z = tria(
-        jnp.stack(
-            [jnp.concatenate([l.A @ K.T, l.cov], 1), jnp.concatenate([e.A.T @ Om_Z.T, e.info], 1)]
-        )
-    )
-    Mb = M @ e.b
-    logdet = 2.0 * jnp.sum(jnp.log(jnp.abs(jnp.diag(Xi))))
-    logc = e.logc + l.logc - 0.5 * logdet - 0.5 * om_b @ om_b + l.eta @ Mb + 0.5 * k_eta @ k_eta
-    J_b = l.info @ (l.info.T @ e.b)
-    return Element(
-        A=l.A @ M @ e.A,
-        b=l.A @ (Mb + M @ (e.cov @ (e.cov.T @ l.eta))) + l.b,
-        cov=U,
-        eta=e.A.T @ (M.T @ (l.eta - J_b)) + e.eta,
-        info=Z,
-        logc=logc,
-    )
+    W = solve_triangular(Xi, jnp.concatenate([e.U.T, V.T], 1), lower=True)
+    K, KV = W[:, :N], W[:, N:]  # Xi^-1 U_i^T, Xi^-1 U_i^T Z_j
+    M = eye - K.T @ KV @ l.Z.T  # (I + C_i J_j)^-1
+    Om_Z = solve_triangular(Om, l.Z.T, lower=True)  # Om^-1 Z_j^T
+    U, Z = tria(jnp.stack([jnp.concatenate([l.A @ K.T, l.U], 1),
+                           jnp.concatenate([e.A.T @ Om_Z.T, e.Z], 1)]))  # fmt: skip
+    logdet = jnp.sum(jnp.log(jnp.abs(jnp.diag(Xi))))  # ln det(I + C_i J_j) / 2
+    return SquareRootElement(l.A @ M @ e.A, U, Z, e.logc + l.logc - logdet)
+
+
+def homogeneous(A, b, U, Z, logc) -> SquareRootElement:
+    """The element of x = A z + b + U e, p(y | z) = exp(logc - |Z^T [z; 1]|^2 / 2) with Z of
+    shape (n+1, p)."""
+    n = b.shape[0]
+    bottom = jnp.concatenate([jnp.zeros(n, b.dtype), jnp.ones(1, b.dtype)])
+    A_hat = jnp.concatenate([jnp.concatenate([A, b[:, None]], 1), bottom[None]], 0)
+    U_hat = jnp.concatenate([square_factor(U, n + 1), jnp.zeros((1, n + 1), b.dtype)], 0)
+    return SquareRootElement(A_hat, U_hat, square_factor(Z, n + 1), logc)
 
 
 class ParallelElement(eqx.Module):
@@ -219,15 +245,19 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
     def _factor_type(self):
         return CholeskyFactor if self.square_root else Covariance
 
-    def _combine_one(self, e: Element, l: Element) -> Element:
+    def _combine_one(self, e, l):
         return (combine_square_root if self.square_root else combine_standard)(e, l)
 
-    def _from_gaussian(self, mean, cov_or_factor, loglik) -> Element:
+    def _from_gaussian(self, mean, factor, loglik):
+        """The prefix element of N(mean, P) (``factor``: P, or its Cholesky factor) and the
+        log-likelihood so far."""
         n = mean.shape[0]
         zero = jnp.zeros((n, n), mean.dtype)
-        return Element(zero, mean, cov_or_factor, jnp.zeros_like(mean), zero, loglik)
+        if self.square_root:
+            return homogeneous(zero, mean, factor, jnp.zeros((n + 1, 1), mean.dtype), loglik)
+        return Element(zero, mean, factor, jnp.zeros_like(mean), zero, loglik)
 
-    def _pair(self, main: Element, aux: Element) -> Element:
+    def _pair(self, main, aux):
         return jax.tree.map(lambda a, b: jnp.stack([a, b]), main, aux)
 
     def prior_element(self, model, prior) -> ParallelElement:
@@ -239,7 +269,7 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
         return ParallelElement(self._pair(main, main), y)
 
     def element(self, model, k, y, u) -> ParallelElement:
-        """Eq (2)."""
+        """Eq (2), in homogeneous coordinates for the square-root form."""
         n = model.F.shape[-1]
         dtype = jnp.result_type(model.F, y)
         zero = jnp.zeros(n, dtype)
@@ -251,13 +281,18 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
             R_chol, jnp.concatenate([meas.H, meas.innovation[:, None]], 1), lower=True
         )
         Hw, rw = W[:, :n], W[:, n]  # R^-1/2 H, R^-1/2 r
-        logc = gaussian_loglik(rw, R_chol, meas.num_observed)
-        if self.square_root:
-            cov, info = square_factor(G @ cholesky(Q), n), square_factor(Hw.T, n)
+        F, b = F.astype(dtype), b.astype(dtype)
+        if self.square_root:  # |Z^T [z; 1]|^2 = |Hw z - rw|^2
+            normaliser = gaussian_loglik(jnp.zeros_like(rw), R_chol, meas.num_observed)
+            Z = jnp.concatenate([Hw.T, -rw[None]], 0)
+            main = homogeneous(F, b, G @ cholesky(Q), Z, normaliser)
+            identity = homogeneous(jnp.eye(n, dtype=dtype), zero, jnp.zeros((n, n), dtype),
+                                   jnp.zeros((n + 1, 1), dtype), jnp.zeros((), dtype))  # fmt: skip
         else:
-            cov, info = symmetrize(sandwich(G, Q)), symmetrize(Hw.T @ Hw)
-        main = Element(F.astype(dtype), b.astype(dtype), cov, Hw.T @ rw, info, logc)
-        return ParallelElement(self._pair(main, identity_element(n, dtype)), y - y_pred)
+            logc = gaussian_loglik(rw, R_chol, meas.num_observed)
+            C, J = symmetrize(sandwich(G, Q)), symmetrize(Hw.T @ Hw)
+            main, identity = Element(F, b, C, Hw.T @ rw, J, logc), identity_element(n, dtype)
+        return ParallelElement(self._pair(main, identity), y - y_pred)
 
     def combine(self, earlier: ParallelElement, later: ParallelElement) -> ParallelElement:
         first = jax.tree.map(lambda a: jnp.stack([a[0], a[0]]), earlier.pair)
@@ -268,14 +303,14 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
         """Step k's output: the sequential update of x(k|k-1), P(k|k-1) (the auxiliary
         element of the prefix) with y_k."""
         aux = jax.tree.map(lambda a: a[1], prefix.pair)
-        factor = self._factor_type(aux.cov)
+        factor = self._factor_type(aux.factor)
         # the input's part of y_k is already removed, so u = None; the prediction is discarded
-        _, _, out = self._update.update_predict(model, aux.b, factor, k, prefix.y, None)
+        _, _, out = self._update.update_predict(model, aux.mean, factor, k, prefix.y, None)
         return out
 
     def _gaussian(self, prefix: ParallelElement) -> GaussianState:
         main = jax.tree.map(lambda a: a[0], prefix.pair)
-        return GaussianState(main.b, self._factor_type(main.cov), main.logc)
+        return GaussianState(main.mean, self._factor_type(main.factor), main.loglik)
 
     def init(self, model, prior) -> GaussianState:
         return self._gaussian(self.prior_element(model, prior))
