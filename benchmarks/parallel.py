@@ -14,8 +14,6 @@ recorded beside the CPU one.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 
 import jax
 import jax.numpy as jnp
@@ -44,8 +42,7 @@ def main(argv=None):
                     print(f"n={n} T={T} {r['dtype']} {r['method']}: compile {r['compile_s']:.1f} s,"
                           f" run {1e3 * r['run_s']:.2f} ms, rel loglik diff "
                           f"{r['loglik_rel_diff']}", flush=True)  # fmt: skip
-    info = {"device": device_name(), "cpu_count": os.cpu_count(), "machine": platform.machine()}
-    emit_json({**info, "rows": rows}, args.json)
+    emit_json({"device": device_name(), "rows": rows}, args.json)
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Parallel-in-time Kalman filter: the filter as an associative scan (O(log T) depth).
 
 Elements (Särkkä & García-Fernández 2021, "Temporal parallelization of Bayesian smoothers",
-IEEE TAC 66(1), Lemmas 7-8). An element a = (A, b, C, eta, J, c) over a stretch of steps with
+IEEE TAC 66(1), its parallel Kalman filter). An element a = (A, b, C, eta, J, c) over a stretch of steps with
 entry state z and exit state x stands for
 
     p(x | z, y's of the stretch) = N(x; A z + b, C),
@@ -16,7 +16,7 @@ x_{k+1}: since y_k and x_{k+1} are independent given x_k,
 over the observed rows (NaN rows are removed by ``masked_measurement``: zero rows of H and r,
 unit R, and ``num_observed`` counts the rest, so a wholly missing y_k gives eta = 0, J = 0,
 c = 0). The prior element is A = 0, b = m0, C = P0, eta = 0, J = 0, c = 0. Combining the earlier
-element i with the later j (Lemma 8, with M = (I + C_i J_j)^-1):
+element i with the later j (with M = (I + C_i J_j)^-1):
 
     A = A_j M A_i,            b = A_j M (b_i + C_i eta_j) + b_j,   C = A_j M C_i A_j^T + C_j,
     eta = A_i^T M^T (eta_j - J_j b_i) + eta_i,                     J = A_i^T M^T J_j A_i + J_i,
@@ -24,24 +24,34 @@ element i with the later j (Lemma 8, with M = (I + C_i J_j)^-1):
         + eta_j^T M b_i + eta_j^T M C_i eta_j / 2.                                          (3)
 
 The last line is the Gaussian integral of exp(-x^T J_j x/2 + eta_j^T x) against N(A_i z + b_i,
-C_i) that Lemma 8 leaves out; it makes c of the prefix (prior, 0..k) the log-likelihood
+C_i) that the paper leaves out (it has no likelihood); it makes c of the prefix (prior, 0..k) the log-likelihood
 log p(y_0..y_k), since a prefix has A = 0, eta = 0, J = 0 and its (b, C) = x(k+1|k), P(k+1|k).
 
 Square-root form (default; Yaghoobi, Corenflos, Hostettler & Särkkä 2022, "Parallel square-root
-statistical linear regression for inference in nonlinear state space models", eqs 16-20):
-C = U U^T and J = Z Z^T are held as n x n factors. With V = Z_j^T U_i and tria(X) the lower L
-with L L^T = X X^T (QR of X^T),
+statistical linear regression for inference in nonlinear state space models").
+Written in homogeneous coordinates z^ = [z; 1], an element is x^ = A^ z^ + U^ e (e ~ N(0, I)),
+p(y's | z) = exp(logc - |Z^T z^|^2 / 2), with
+
+    A^ = [[A, b], [0, 1]],   U^ = [[U], [0]] (U U^T = C),   Z Z^T = [[J, -eta], [-eta^T, g]],
+
+(n+1) x (n+1) factors; b and eta are folded into A^ and Z, and the constant -g/2 of (1) into
+Z's last row. Eq (3) with b = 0 and eta = 0 then reads, with V = Z_j^T U_i and tria(X) the
+lower-triangular L with L L^T = X X^T (QR of X^T),
 
     Xi = tria([V^T, I]) (Xi Xi^T = I + U_i^T J_j U_i),   Om = tria([V, I]) (I + Z_j^T C_i Z_j),
-    U = tria([A_j U_i Xi^-T, U_j]),   Z = tria([A_i^T Z_j Om^-T, Z_i]),
-    M = I - U_i Xi^-T Xi^-1 U_i^T J_j,    ln det(I + C_i J_j) = 2 sum ln |diag Xi|,
-    b_i^T M^T J_j b_i = |Om^-1 Z_j^T b_i|^2,    eta_j^T M C_i eta_j = |Xi^-1 U_i^T eta_j|^2. (4)
+    A^ = A^_j (I - U_i Xi^-T Xi^-1 U_i^T Z_j Z_j^T) A^_i,
+    U^ = tria([A^_j U_i Xi^-T, U_j]),   Z = tria([A^_i^T Z_j Om^-T, Z_i]),
+    logc = logc_i + logc_j - sum ln |diag Xi|     (ln det(I + C_i J_j) = 2 sum ln |diag Xi|). (4)
 
+For a prefix (A = 0) the likelihood is logc - |last row of Z|^2 / 2: a sum of squares formed by
+QR, where eq (3)'s c is a difference of large terms (r^T R^-1 r against its completion of the
+square), which loses every digit in float32 once R is small. Element k is A^ = [[F, B u], [0, 1]],
+U = G chol(Q), Z^T = [R^-1/2 H, -R^-1/2 r] (observed rows), logc = -(m_obs ln 2 pi + ln det R)/2.
 This is the paper's combination with its 2n x 2n triangularisation split into two n x 2n ones
-(Xi11 and Xi22 of the paper are Xi and Z_j Om^-T up to an orthogonal factor): both pre-arrays
-contain I, so they have full rank and QR's derivative exists, whereas the paper's pre-array is
-rank-deficient whenever J_j is (fewer measurements than states, missing data). U and Z enter
-(4) only through U U^T and Z Z^T, so their own tria uses the tangent dL = dX Q (X^T = Q R),
+(its Xi11 and Xi22 are Xi and Z_j Om^-T up to an orthogonal factor): both pre-arrays contain I,
+so they have full rank and QR's derivative exists, whereas the paper's pre-array is
+rank-deficient whenever J_j is (fewer measurements than states, missing data). U^ and Z enter
+(4) only through U^ U^^T and Z Z^T, so their own tria uses the tangent dL = dX Q (X^T = Q R),
 which is a valid tangent of L L^T whatever the rank (:func:`tria`).
 
 Outputs. The prefix of element k gives x(k+1|k); step k's output needs x(k|k-1), P(k|k-1) and

@@ -1,6 +1,6 @@
 """Parallel-in-time RTS smoother: the backward pass as a reverse associative scan.
 
-Särkkä & García-Fernández 2021 (IEEE TAC 66(1), Lemmas 9-10). From the filter result, element k
+Särkkä & García-Fernández 2021 (IEEE TAC 66(1), its parallel RTS smoother). From the filter result, element k
 (k < T-1) stands for p(x_k | x_{k+1}, y_0..y_k) = N(x_k; E_k x_{k+1} + g_k, L_k) with
 
     E_k = P(k|k) F_k^T P(k+1|k)^-1   (the RTS gain),
