@@ -203,11 +203,14 @@ def combine_square_root(e: SquareRootElement, l: SquareRootElement) -> SquareRoo
     N = e.A.shape[0]
     eye = jnp.eye(N, dtype=e.A.dtype)
     V = l.Z.T @ e.U
-    Xi, Om = lower_factor(jnp.stack([jnp.concatenate([V.T, eye], 1), jnp.concatenate([V, eye], 1)]))
-    W = solve_triangular(Xi, jnp.concatenate([e.U.T, V.T], 1), lower=True)
-    K, KV = W[:, :N], W[:, N:]  # Xi^-1 U_i^T, Xi^-1 U_i^T Z_j
+    pre = jnp.stack([jnp.concatenate([V.T, eye], 1), jnp.concatenate([V, eye], 1)])
+    Xi_Om = lower_factor(pre)  # Xi and Om
+    # both triangular solves in one batched call (one LAPACK call at a time, jaxest.montecarlo)
+    rhs = jnp.stack([jnp.concatenate([e.U.T, V.T], 1), jnp.concatenate([l.Z.T, 0 * eye], 1)])
+    W = jax.scipy.linalg.solve_triangular(Xi_Om, rhs, lower=True)
+    Xi, K, KV, Om_Z = Xi_Om[0], W[0, :, :N], W[0, :, N:], W[1, :, :N]
+    # K = Xi^-1 U_i^T, KV = Xi^-1 U_i^T Z_j, Om_Z = Om^-1 Z_j^T
     M = eye - K.T @ KV @ l.Z.T  # (I + C_i J_j)^-1
-    Om_Z = solve_triangular(Om, l.Z.T, lower=True)  # Om^-1 Z_j^T
     U, Z = tria(jnp.stack([jnp.concatenate([l.A @ K.T, l.U], 1),
                            jnp.concatenate([e.A.T @ Om_Z.T, e.Z], 1)]))  # fmt: skip
     logdet = jnp.sum(jnp.log(jnp.abs(jnp.diag(Xi))))  # ln det(I + C_i J_j) / 2
