@@ -73,9 +73,7 @@ def test_matches_numpy_kalman_filter():
     prior = je.Gaussian(jnp.asarray(rng.normal(size=3)), jnp.eye(3))
     ys = np.array(je.simulate(model, prior, 40, jax.random.PRNGKey(5)).y)
     ys[0, :], ys[11, 1] = np.nan, np.nan  # the first vector missing too
-    res = je.run(
-        je.ParallelKalmanFilter(square_root=square_root), model, jnp.asarray(ys), prior=prior
-    )
+    res = je.run(je.ParallelKalmanFilter(), model, jnp.asarray(ys), prior=prior)
     means, covs, pmeans, pcovs, loglik = kalman_filter(F, H, Q, R, np.asarray(prior.mean),
                                                        np.asarray(prior.cov), ys)  # fmt: skip
     for actual, desired in zip((res.mean, res.cov, res.predicted_mean, res.predicted_cov),
