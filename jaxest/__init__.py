@@ -21,6 +21,7 @@ from jaxest._status import (
     finite_status as finite_status,
     status_where as status_where,
 )
+from jaxest.em import EMResult as EMResult, fit_em as fit_em
 from jaxest.filters import (
     EKF as EKF,
     SVDEKF as SVDEKF,
@@ -35,6 +36,7 @@ from jaxest.filters import (
     InformationFilter as InformationFilter,
     InformationMatrix as InformationMatrix,
     KalmanFilter as KalmanFilter,
+    ParallelKalmanFilter as ParallelKalmanFilter,
     SquareRootKF as SquareRootKF,
     SteadyStateGain as SteadyStateGain,
     SteadyStateKalmanFilter as SteadyStateKalmanFilter,

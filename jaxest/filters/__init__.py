@@ -16,6 +16,7 @@ from jaxest.filters.kalman import (
     InformationFilter as InformationFilter,
     KalmanFilter as KalmanFilter,
 )
+from jaxest.filters.parallel import ParallelKalmanFilter as ParallelKalmanFilter
 from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
 from jaxest.filters.steady_state import (
     SteadyStateGain as SteadyStateGain,

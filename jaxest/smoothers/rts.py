@@ -36,15 +36,23 @@ class SmootherResult(eqx.Module):
 NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
 
 
-def rts_smooth(model, result: FilterResult, *, inputs=None) -> SmootherResult:
+def rts_smooth(
+    model, result: FilterResult, *, inputs=None, parallel: bool = False
+) -> SmootherResult:
     """Smooth a :class:`~jaxest.FilterResult` of ``model`` (``inputs`` as given to the filter).
 
     The result must hold the filtered and predicted means and covariances and the status
     (the default :class:`~jaxest.SaveAt`). Compiled once per model structure and shapes.
+    ``parallel=True``: the same smoother as a reverse associative scan, O(log T) depth
+    (:mod:`jaxest.smoothers.parallel`).
     """
     missing = [name for name in NEEDED if getattr(result, name) is None]
     if missing:
         raise ValueError(f"result: rts_smooth needs {missing}, which were not saved")
+    if parallel:
+        from jaxest.smoothers.parallel import parallel_rts_smooth
+
+        return parallel_rts_smooth(model, result, inputs)
     return _rts_smooth(model, result, inputs)
 
 

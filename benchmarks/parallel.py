@@ -1,0 +1,49 @@
+"""Sequential against parallel-in-time Kalman filter + RTS smoother (issue 14): the crossover.
+
+For n = 4 and n = 20 states (m = 2 measurements, random stable model), T = 10^2 .. 10^5,
+float64 and float32: compile time, wall time per run (best of 3 after compiling) and the relative
+log-likelihood difference from the float64 sequential filter, for the sequential filter and
+smoother, and the parallel ones in square-root and standard form
+(:func:`jaxest.studies.parallel.timing`). The JSON names the device, so a run on a GPU is
+recorded beside the CPU one.
+
+    python benchmarks/parallel.py --json parallel.json           # the whole grid
+    python benchmarks/parallel.py --quick --json parallel.json   # n = 4, T <= 10^3
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+import jax.numpy as jnp
+
+jax.config.update("jax_enable_x64", True)
+
+from jaxest.report import emit_json  # noqa: E402
+from jaxest.studies.parallel import device_name, timing  # noqa: E402
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--json", default=None, help="write the results here (default: stdout)")
+    parser.add_argument("--quick", action="store_true", help="n = 4 and T <= 10^3 only")
+    parser.add_argument("--max-T", type=int, default=100_000, help="largest T (default 10^5)")
+    args = parser.parse_args(argv)
+    sizes = [T for T in (100, 1_000, 10_000, 100_000) if T <= (1_000 if args.quick else args.max_T)]
+    states = (4,) if args.quick else (4, 20)
+    rows = []
+    for n in states:
+        for T in sizes:
+            for dtype in (jnp.float64, jnp.float32):
+                new = timing(n, T, dtype)
+                rows += new
+                for r in new:
+                    print(f"n={n} T={T} {r['dtype']} {r['method']}: compile {r['compile_s']:.1f} s,"
+                          f" run {1e3 * r['run_s']:.2f} ms, rel loglik diff "
+                          f"{r['loglik_rel_diff']}", flush=True)  # fmt: skip
+    emit_json({"device": device_name(), "rows": rows}, args.json)
+
+
+if __name__ == "__main__":
+    main()
