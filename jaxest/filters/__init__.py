@@ -16,6 +16,12 @@ from jaxest.filters.kalman import (
     InformationFilter as InformationFilter,
     KalmanFilter as KalmanFilter,
 )
+from jaxest.filters.sigma_point import (
+    UKF as UKF,
+    AbstractSigmaPointFilter as AbstractSigmaPointFilter,
+    CubatureKF as CubatureKF,
+    GaussHermiteKF as GaussHermiteKF,
+)
 from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
 from jaxest.filters.steady_state import (
     SteadyStateGain as SteadyStateGain,
