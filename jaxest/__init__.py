@@ -38,6 +38,7 @@ from jaxest.filters import (
     ImprovedSVDKF as ImprovedSVDKF,
     InformationFilter as InformationFilter,
     InformationMatrix as InformationMatrix,
+    IteratedEKF as IteratedEKF,
     KalmanFilter as KalmanFilter,
     SquareRootKF as SquareRootKF,
     SteadyStateGain as SteadyStateGain,

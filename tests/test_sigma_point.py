@@ -35,7 +35,8 @@ def pendulum(dtype=jnp.float64):
     """The pendulum, its prior and measurements (simulated in float64, then cast)."""
     if dtype != jnp.float64:
         model, prior, ys = pendulum()
-        return jax.tree.map(lambda a: a.astype(dtype), (model, prior, ys))
+        cast = lambda a: a.astype(dtype) if isinstance(a, jax.Array) else a  # noqa: E731
+        return jax.tree.map(cast, (model, prior, ys))
     Q = jnp.array([[DT**3 / 3, DT**2 / 2], [DT**2 / 2, DT]], dtype) * 0.5
     R = jnp.array([[0.05, 0.01], [0.01, 0.08]], dtype)
     model = je.NonlinearGaussian(pendulum_f, pendulum_h, Q, R)
@@ -303,8 +304,8 @@ def test_svd_form_gradient_finite_at_repeated_eigenvalues(name):
     def loss(filt, model, q):
         return je.run(filt, eqx.tree_at(lambda m: m.Q, model, q * model.Q), ys, prior=prior).loglik
 
-    g_svd = jax.grad(functools.partial(loss, POINT_SETS[name](form="svd"), model))(0.5)
-    g_cov = jax.grad(functools.partial(loss, POINT_SETS[name](), model))(0.5)
+    g_svd = jax.jit(jax.grad(functools.partial(loss, POINT_SETS[name](form="svd"), model)))(0.5)
+    g_cov = jax.jit(jax.grad(functools.partial(loss, POINT_SETS[name](), model)))(0.5)
     np.testing.assert_allclose(g_svd, g_cov, rtol=1e-9)
 
     pend, _, ys = pendulum()
@@ -322,19 +323,23 @@ def test_svd_form_gradient_finite_at_repeated_eigenvalues(name):
 
 
 def test_nonfinite_measurement_sets_status():
+    """Inside jit the checks cannot see +-inf in ys; the step's status says NONFINITE."""
     model, prior, ys = pendulum()
     for form in FORMS:
-        result = je.run(je.UKF(form=form), model, ys.at[5, 0].set(jnp.inf), prior=prior)
+        run = jax.jit(lambda ys, form=form: je.run(je.UKF(form=form), model, ys, prior=prior))
+        result = run(ys.at[5, 0].set(jnp.inf))
         assert int(result.status[5]) & je.Status.NONFINITE
         assert int(result.status[4]) == 0
 
 
-def test_lost_definiteness_sets_status():
-    """A tiny alpha makes Wc_0 hugely negative: the square-root form's downdate fails and says so
-    in ``status`` instead of returning a silent NaN."""
-    model, prior, ys = pendulum()
-    result = je.run(je.UKF(alpha=1e-3, form="sqrt"), model, ys, prior=prior)
-    assert int(result.any_status) != 0
+@pytest.mark.parametrize("form", FORMS)
+def test_lost_definiteness_sets_status(form):
+    """beta = -1 with alpha = 0.3 makes Wc_0 so negative that the sigma-point S of h(x) = x^4
+    is negative: every form flags NOT_POSITIVE_DEFINITE instead of returning a silent NaN."""
+    model = je.NonlinearGaussian(lambda x: x, lambda x: x**4, 0.01 * jnp.eye(1), 1e-3 * jnp.eye(1))
+    prior = je.Gaussian(jnp.zeros(1), jnp.eye(1))
+    result = je.run(je.UKF(alpha=0.3, beta=-1.0, form=form), model, jnp.ones((3, 1)), prior=prior)
+    assert int(result.status[0]) & je.Status.NOT_POSITIVE_DEFINITE
 
 
 @pytest.mark.parametrize(

@@ -11,6 +11,7 @@ from jaxest.filters.base import (
     StepOutput as StepOutput,
     SVDFactor as SVDFactor,
 )
+from jaxest.filters.iterated import IteratedEKF as IteratedEKF
 from jaxest.filters.kalman import (
     EKF as EKF,
     InformationFilter as InformationFilter,
