@@ -57,6 +57,7 @@ from jaxest.models import (
 from jaxest.montecarlo import monte_carlo as monte_carlo
 from jaxest.riccati import lqr_gain as lqr_gain, solve_care as solve_care, solve_dare as solve_dare
 from jaxest.smoothers import SmootherResult as SmootherResult, rts_smooth as rts_smooth
+from jaxest.smoothers.sigma_point_rts import sigma_point_rts_smooth as sigma_point_rts_smooth
 from jaxest.smoothers.steady_state import (
     arma_innovation_model as arma_innovation_model,
     steady_state_smooth as steady_state_smooth,

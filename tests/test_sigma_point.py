@@ -374,3 +374,60 @@ def test_sqrt_form_requires_positive_definite_Q():
     with pytest.raises(ValueError, match="Q"):
         je.run(je.UKF(form="sqrt"), singular, ys, prior=prior)
     assert int(je.run(je.UKF(form="svd"), singular, ys, prior=prior).any_status) == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# sigma-point RTS smoother
+
+
+@pytest.mark.parametrize(
+    "filt",
+    [je.UKF(alpha=0.5), je.UKF(alpha=0.5, form="sqrt", noise="augmented"),
+     je.CubatureKF(form="svd"), je.GaussHermiteKF(order=3, form="svd", noise="augmented")],
+    ids=lambda f: f"{type(f).__name__}-{f.form}-{f.noise}",
+)  # fmt: skip
+def test_sigma_point_rts_equals_rts_on_linear_model(filt):
+    model, prior, ys = random_linear()
+    ref = je.rts_smooth(model, je.run(je.KalmanFilter(), model, ys, prior=prior))
+    smoothed = je.sigma_point_rts_smooth(model, je.run(filt, model, ys, prior=prior), filt)
+    np.testing.assert_allclose(smoothed.mean, ref.mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(smoothed.cov, ref.cov, rtol=1e-9, atol=1e-12)
+    assert bool(smoothed.ok)
+
+
+def numpy_urts(points, f, Q, filtered):
+    """Plain-NumPy unscented RTS smoother (Särkkä 2008, eqs 15-17) with Cholesky points."""
+    means, covs = [filtered.mean[-1]], [filtered.cov[-1]]
+    xi, Wm, Wc = points.unit_points(filtered.mean.shape[1])
+    for m, P in zip(filtered.mean[-2::-1], filtered.cov[-2::-1], strict=True):
+        X = m + xi @ np.linalg.cholesky(P).T
+        FX = np.array([f(s) for s in X])
+        m_pred = Wm @ FX
+        P_pred = (FX - m_pred).T @ (Wc[:, None] * (FX - m_pred)) + Q
+        D = (X - m).T @ (Wc[:, None] * (FX - m_pred))
+        C = D @ np.linalg.inv(P_pred)
+        means.append(m + C @ (means[-1] - m_pred))
+        covs.append(P + C @ (covs[-1] - P_pred) @ C.T)
+    return np.array(means[::-1]), np.array(covs[::-1])
+
+
+def test_sigma_point_rts_equals_numpy_urts_on_pendulum():
+    model, prior, ys = pendulum()
+    filt = je.UKF(alpha=0.5)
+    result = je.run(filt, model, ys, prior=prior)
+    smoothed = je.sigma_point_rts_smooth(model, result, filt)
+    f = lambda x: np.asarray(pendulum_f(jnp.asarray(x)))  # noqa: E731
+    filtered = jax.tree.map(np.asarray, result)
+    means, covs = numpy_urts(UnscentedPoints(0.5, 2.0, 0.0), f, np.asarray(model.Q), filtered)
+    np.testing.assert_allclose(smoothed.mean, means, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(smoothed.cov, covs, rtol=1e-9, atol=1e-12)
+
+
+def test_sigma_point_rts_checks_its_arguments():
+    model, prior, ys = random_linear()
+    result = je.run(je.KalmanFilter(), model, ys, prior=prior)
+    with pytest.raises(ValueError, match="^filter:"):
+        je.sigma_point_rts_smooth(model, result, je.KalmanFilter())
+    partial = je.run(je.UKF(), model, ys, prior=prior, save=je.SaveAt(fields=("mean",)))
+    with pytest.raises(ValueError, match="^result:"):
+        je.sigma_point_rts_smooth(model, partial, je.UKF())

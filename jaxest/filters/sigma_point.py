@@ -330,13 +330,14 @@ class AbstractSigmaPointFilter(AbstractGaussianFilter):
         """The covariance and square-root forms take a Cholesky factor of Q."""
         return self.form != "svd"
 
-    def _form(self) -> AbstractForm:
+    def factor_form(self) -> AbstractForm:
+        """The operations of this filter's ``form``."""
         return FORM_TYPES[self.form]()
 
     def init(self, model, prior) -> GaussianState:
         check_gaussian_prior(prior)
         zero = jnp.zeros((), jnp.result_type(prior.mean))
-        return GaussianState(prior.mean, self._form().from_cov(prior.cov), zero)
+        return GaussianState(prior.mean, self.factor_form().from_cov(prior.cov), zero)
 
     def check(self, model, ys, inputs, prior) -> None:
         super().check(model, ys, inputs, prior)
@@ -387,27 +388,34 @@ class AbstractSigmaPointFilter(AbstractGaussianFilter):
         post = form.combine(dX - dY @ K.T, Wc, K @ noise)  # eq 4
         return x_post, post, meas.innovation, S, loglik
 
-    def time_update(self, form, model, x, factor, k, u):
-        """Eq 5: x(k+1|k) and its factor."""
+    def propagate(self, form, model, x, factor, k, u):
+        """The points of the time update at x(k|k): state deviations X_i - x (rows), f(X_i),
+        the weights Wm, Wc and the square root of the additive noise G Q G^T (zero columns
+        when the noise is augmented)."""
         n = x.shape[0]
         A = form.square_root(factor)
         G, Q = model.process_noise(x, u, k)
         if self.noise == "augmented":
-            q = Q.shape[-1]
-            xi, Wm, Wc = self._points(n + q, x.dtype)
+            xi, Wm, Wc = self._points(n + Q.shape[-1], x.dtype)
             X = _draw(x, A, xi[:, :n])
             W = xi[:, n:] @ form.noise_sqrt(Q).T
             FX = jax.vmap(lambda s, w: model.sample_transition(s, u, k, w))(X, W)
             noise = jnp.zeros((n, 0), x.dtype)
         else:
             xi, Wm, Wc = self._points(n, x.dtype)
-            FX = jax.vmap(lambda s: model.f(s, u, k))(_draw(x, A, xi))
+            X = _draw(x, A, xi)
+            FX = jax.vmap(lambda s: model.f(s, u, k))(X)
             noise = G @ form.noise_sqrt(Q)
+        return X - _weighted_mean(Wm, X), FX, Wm, Wc, noise
+
+    def time_update(self, form, model, x, factor, k, u):
+        """Eq 5: x(k+1|k) and its factor."""
+        _, FX, Wm, Wc, noise = self.propagate(form, model, x, factor, k, u)
         x_next = _weighted_mean(Wm, FX)
         return x_next, form.combine(FX - x_next, Wc, noise)
 
     def update_predict(self, model, x, factor, k, y, u):
-        form = self._form()
+        form = self.factor_form()
         x_post, post, e, S, loglik = self.measurement_update(form, model, x, factor, k, y, u)
         x_next, factor_next = self.time_update(form, model, x_post, post, k, u)
         status = step_status(x_next, loglik) | form.status(post) | form.status(factor_next)
