@@ -126,23 +126,22 @@ def loglik_of_R_scale(filt, model, prior, ys):
 
 
 @pytest.mark.parametrize("damping", [0.0, 1.0])
-def test_grad_matches_finite_difference(damping):
-    loss = jax.jit(loglik_of_R_scale(je.IteratedEKF(iterations=3, damping=damping), *tracking()))
-    grad = jax.grad(loss)(1.0)
-    fd = (loss(1.0 + 1e-5) - loss(1.0 - 1e-5)) / 2e-5
-    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+def test_jit_vmap_grad_float64_and_float32(damping):
+    """d loglik / d (R scale) equals the central finite difference in float64; in float32 the
+    jitted, vmapped value and gradient follow the float64 ones."""
+    filt = je.IteratedEKF(iterations=3, damping=damping)
+    value_and_grad = jax.jit(jax.value_and_grad(loglik_of_R_scale(filt, *tracking())))
+    fd = (value_and_grad(1.0 + 1e-5)[0] - value_and_grad(1.0 - 1e-5)[0]) / 2e-5
+    np.testing.assert_allclose(value_and_grad(1.0)[1], fd, rtol=1e-6)
 
-
-def test_jit_vmap_grad_float32():
-    filt = je.IteratedEKF(iterations=3)
-    loss = loglik_of_R_scale(filt, *tracking(jnp.float32))
-    value, grad = jax.jit(jax.value_and_grad(loss))(jnp.float32(1.0))
-    assert value.dtype == jnp.float32
-    ref = loglik_of_R_scale(filt, *tracking())
-    np.testing.assert_allclose(value, ref(1.0), rtol=1e-4)
-    np.testing.assert_allclose(grad, jax.grad(ref)(1.0), rtol=1e-2)
-    scales = jnp.linspace(0.5, 2.0, 3, dtype=jnp.float32)
-    np.testing.assert_allclose(jax.jit(jax.vmap(loss))(scales)[1], loss(scales[1]), rtol=1e-5)
+    loss32 = loglik_of_R_scale(filt, *tracking(jnp.float32))
+    scales = jnp.array([0.5, 1.0, 2.0], jnp.float32)
+    values, grads = jax.jit(jax.vmap(jax.value_and_grad(loss32)))(scales)
+    assert values.dtype == grads.dtype == jnp.float32
+    for scale, value, grad in zip(scales, values, grads, strict=True):
+        value64, grad64 = value_and_grad(float(scale))
+        np.testing.assert_allclose(value, value64, rtol=1e-4)
+        np.testing.assert_allclose(grad, grad64, rtol=1e-2, atol=1e-2)
 
 
 @pytest.mark.parametrize(
