@@ -25,16 +25,21 @@ from jaxest.em import EMResult as EMResult, fit_em as fit_em
 from jaxest.filters import (
     EKF as EKF,
     SVDEKF as SVDEKF,
+    UKF as UKF,
     AbstractCovarianceFactor as AbstractCovarianceFactor,
     AbstractGaussianFilter as AbstractGaussianFilter,
+    AbstractSigmaPointFilter as AbstractSigmaPointFilter,
     AbstractSVDFilter as AbstractSVDFilter,
     CholeskyFactor as CholeskyFactor,
     Covariance as Covariance,
+    CubatureKF as CubatureKF,
     FilterResult as FilterResult,
+    GaussHermiteKF as GaussHermiteKF,
     GaussianState as GaussianState,
     ImprovedSVDKF as ImprovedSVDKF,
     InformationFilter as InformationFilter,
     InformationMatrix as InformationMatrix,
+    IteratedEKF as IteratedEKF,
     KalmanFilter as KalmanFilter,
     ParallelKalmanFilter as ParallelKalmanFilter,
     SquareRootKF as SquareRootKF,
@@ -71,6 +76,7 @@ from jaxest.riccati import (
     solve_filter_dare as solve_filter_dare,
 )
 from jaxest.smoothers import SmootherResult as SmootherResult, rts_smooth as rts_smooth
+from jaxest.smoothers.sigma_point_rts import sigma_point_rts_smooth as sigma_point_rts_smooth
 from jaxest.smoothers.steady_state import (
     arma_innovation_model as arma_innovation_model,
     steady_state_smooth as steady_state_smooth,

@@ -11,12 +11,19 @@ from jaxest.filters.base import (
     StepOutput as StepOutput,
     SVDFactor as SVDFactor,
 )
+from jaxest.filters.iterated import IteratedEKF as IteratedEKF
 from jaxest.filters.kalman import (
     EKF as EKF,
     InformationFilter as InformationFilter,
     KalmanFilter as KalmanFilter,
 )
 from jaxest.filters.parallel import ParallelKalmanFilter as ParallelKalmanFilter
+from jaxest.filters.sigma_point import (
+    UKF as UKF,
+    AbstractSigmaPointFilter as AbstractSigmaPointFilter,
+    CubatureKF as CubatureKF,
+    GaussHermiteKF as GaussHermiteKF,
+)
 from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
 from jaxest.filters.steady_state import (
     SteadyStateGain as SteadyStateGain,

@@ -1,0 +1,83 @@
+"""Sigma-point Rauch-Tung-Striebel smoother (unscented / cubature RTS; Särkkä, Unscented
+Rauch-Tung-Striebel smoother, IEEE TAC 2008, eqs 15-17) for the result of any sigma-point filter.
+
+Backward pass k = T-2, ..., 0 with the filter's own points X_i drawn from x(k|k), P(k|k)
+(the square root of its form) and f(X_i) (or f(X_i, W_i) with augmented noise)::
+
+    D_k    = sum_i Wc_i (X_i - x(k|k)) (f(X_i) - x(k+1|k))^T
+    C_k    = D_k P(k+1|k)^-1
+    x(k|T) = x(k|k) + C_k (x(k+1|T) - x(k+1|k))
+    P(k|T) = P(k|k) + C_k (P(k+1|T) - P(k+1|k)) C_k^T
+
+x(k+1|k), P(k+1|k) are the filter's predictions (the same points gave them). On a linear model
+D_k = P(k|k) F^T and this is the RTS smoother (:func:`~jaxest.rts_smooth`).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from jaxest._status import finite_status
+from jaxest.filters.base import FilterResult
+from jaxest.filters.sigma_point import AbstractSigmaPointFilter
+from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
+from jaxest.smoothers.rts import NEEDED, SmootherResult
+
+
+def sigma_point_rts_smooth(
+    model, result: FilterResult, filter: AbstractSigmaPointFilter, *, inputs=None
+) -> SmootherResult:
+    """Smooth the :class:`~jaxest.FilterResult` that ``filter`` (a sigma-point filter: its point
+    set, form and noise mode are reused) produced on ``model`` (``inputs`` as given to it).
+
+    The result must hold the filtered and predicted means and covariances and the status (the
+    default :class:`~jaxest.SaveAt`).
+    """
+    if not isinstance(filter, AbstractSigmaPointFilter):
+        raise ValueError(
+            f"filter: expected a sigma-point filter (UKF, CubatureKF, GaussHermiteKF), "
+            f"got {type(filter).__name__}; use jaxest.rts_smooth for the others"
+        )
+    missing = [name for name in NEEDED if getattr(result, name) is None]
+    if missing:
+        raise ValueError(f"result: sigma_point_rts_smooth needs {missing}, which were not saved")
+    return _smooth(model, result, filter, inputs)
+
+
+@eqx.filter_jit
+def _smooth(model, result: FilterResult, filter: AbstractSigmaPointFilter, inputs):
+    form = filter.factor_form()
+    steps = jnp.arange(result.mean.shape[0] - 1)
+    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+
+    def backward(carry, args):
+        mean_next, cov_next = carry
+        k, mean, cov, pred_mean_next, pred_cov_next, u = args
+        dX, FX, Wm, Wc, _ = filter.propagate(form, model, mean, form.from_cov(cov), k, u)
+        dF = FX - jnp.asarray(Wm, FX.dtype) @ FX
+        D = dX.T @ (jnp.asarray(Wc, FX.dtype)[:, None] * dF)
+        gain = cho_solve_lower(cholesky(pred_cov_next), D.T).T
+        mean_s = mean + gain @ (mean_next - pred_mean_next)
+        cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)
+        return (mean_s, cov_s), (mean_s, cov_s, finite_status(mean_s, cov_s))
+
+    last = (result.mean[-1], result.cov[-1])
+    args = (
+        steps,
+        result.mean[:-1],
+        result.cov[:-1],
+        result.predicted_mean[1:],
+        result.predicted_cov[1:],
+        u_seq,
+    )
+    _, (means, covs, status) = jax.lax.scan(backward, last, args, reverse=True)
+    return SmootherResult(
+        jnp.concatenate([means, last[0][None]]),
+        jnp.concatenate([covs, last[1][None]]),
+        jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
+    )
+
+
+__all__ = ["sigma_point_rts_smooth"]
