@@ -16,6 +16,14 @@ from jaxest.filters.kalman import (
     InformationFilter as InformationFilter,
     KalmanFilter as KalmanFilter,
 )
+from jaxest.filters.particle import (
+    AbstractProposal as AbstractProposal,
+    GaussianTransition as GaussianTransition,
+    ParticleFilter as ParticleFilter,
+    ParticleResult as ParticleResult,
+    ParticleStatus as ParticleStatus,
+    resample as resample,
+)
 from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
 from jaxest.filters.steady_state import (
     SteadyStateGain as SteadyStateGain,
