@@ -24,6 +24,12 @@ from jaxest.filters.particle import (
     ParticleStatus as ParticleStatus,
     resample as resample,
 )
+from jaxest.filters.sigma_point import (
+    UKF as UKF,
+    AbstractSigmaPointFilter as AbstractSigmaPointFilter,
+    CubatureKF as CubatureKF,
+    GaussHermiteKF as GaussHermiteKF,
+)
 from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
 from jaxest.filters.steady_state import (
     SteadyStateGain as SteadyStateGain,

@@ -1,0 +1,371 @@
+"""Sigma-point filters (UKF, CubatureKF, GaussHermiteKF in covariance, sqrt and SVD forms, additive
+and augmented noise) against filterpy, the Kalman filter, a plain-NumPy sigma-point filter and
+finite differences."""
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
+
+import jaxest as je
+from jaxest.filters.sigma_points import CubaturePoints, GaussHermitePoints, UnscentedPoints
+
+DT, GRAVITY, T = 0.1, 9.81, 25
+FORMS = ("covariance", "sqrt", "svd")
+POINT_SETS = {
+    "UKF": je.UKF,
+    "UKF-alpha0.5": functools.partial(je.UKF, alpha=0.5),  # negative Wc_0: Cholesky downdates
+    "CKF": je.CubatureKF,
+    "GHKF3": functools.partial(je.GaussHermiteKF, order=3),
+}
+
+
+def pendulum_f(x):
+    return jnp.stack([x[0] + DT * x[1], x[1] - GRAVITY * DT * jnp.sin(x[0])])
+
+
+def pendulum_h(x):
+    return jnp.stack([jnp.sin(x[0]), 0.5 * x[1] ** 2])
+
+
+def pendulum(dtype=jnp.float64):
+    """The pendulum, its prior and measurements (simulated in float64, then cast)."""
+    if dtype != jnp.float64:
+        model, prior, ys = pendulum()
+        return jax.tree.map(lambda a: a.astype(dtype), (model, prior, ys))
+    Q = jnp.array([[DT**3 / 3, DT**2 / 2], [DT**2 / 2, DT]], dtype) * 0.5
+    R = jnp.array([[0.05, 0.01], [0.01, 0.08]], dtype)
+    model = je.NonlinearGaussian(pendulum_f, pendulum_h, Q, R)
+    prior = je.Gaussian(jnp.array([1.0, 0.0], dtype), jnp.diag(jnp.array([0.3, 0.5], dtype)))
+    ys = je.simulate(model, jnp.array([1.2, 0.0], dtype), T, jax.random.key(1)).y
+    return model, prior, ys.at[4, 1].set(jnp.nan)
+
+
+def random_linear(dtype=jnp.float64, n=3, m=2):
+    rng = np.random.default_rng(0)
+    A, B = rng.normal(size=(n, n)), rng.normal(size=(m, m))
+    model = je.LinearGaussian(
+        F=jnp.asarray(0.4 * rng.normal(size=(n, n)), dtype),
+        H=jnp.asarray(rng.normal(size=(m, n)), dtype),
+        Q=jnp.asarray(A @ A.T / n + 0.1 * np.eye(n), dtype),
+        R=jnp.asarray(B @ B.T / m + 0.2 * np.eye(m), dtype),
+    )
+    prior = je.Gaussian(jnp.zeros(n, dtype), jnp.eye(n, dtype=dtype))
+    ys = je.simulate(model, jnp.zeros(n, dtype), T, jax.random.key(0)).y
+    return model, prior, ys.at[3, 0].set(jnp.nan)
+
+
+FIELDS = ("predicted_mean", "predicted_cov", "mean", "cov", "innovation", "innovation_cov")
+
+
+def assert_results_close(result, reference, rtol):
+    for name in FIELDS + ("loglik_terms",):
+        np.testing.assert_allclose(
+            getattr(result, name), getattr(reference, name), rtol=rtol, atol=rtol, err_msg=name
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# filterpy
+
+
+def filterpy_ukf(model, prior, ys, fx, hx, alpha, beta, kappa):
+    """filterpy's UKF with the measurement-update points redrawn from the predicted x, P."""
+    n, m = prior.mean.shape[0], ys.shape[1]
+    points = MerweScaledSigmaPoints(n, alpha=alpha, beta=beta, kappa=kappa)
+    ukf = UnscentedKalmanFilter(n, m, DT, hx=hx, fx=lambda x, dt: fx(x), points=points)
+    ukf.x, ukf.P = np.array(prior.mean), np.array(prior.cov)
+    ukf.Q, ukf.R = np.array(model.Q), np.array(model.R)
+    out = {name: [] for name in FIELDS + ("loglik_terms",)}
+    for y in np.asarray(ys):
+        out["predicted_mean"].append(ukf.x.copy())
+        out["predicted_cov"].append(ukf.P.copy())
+        ukf.sigmas_f = ukf.points_fn.sigma_points(ukf.x, ukf.P)
+        ukf.update(y)
+        out["mean"].append(ukf.x.copy())
+        out["cov"].append(ukf.P.copy())
+        out["innovation"].append(ukf.y.copy())
+        out["innovation_cov"].append(ukf.S.copy())
+        out["loglik_terms"].append(ukf.log_likelihood)
+        ukf.predict()
+    return type("FilterpyResult", (), {k: np.array(v) for k, v in out.items()})
+
+
+@pytest.mark.parametrize("alpha, beta, kappa", [(1.0, 2.0, 0.0), (0.5, 2.0, 1.0)])
+def test_ukf_equals_filterpy_on_pendulum(alpha, beta, kappa):
+    model, prior, ys = pendulum()
+    ys = ys.at[4, 1].set(0.1)  # filterpy has no missing data
+    ref = filterpy_ukf(
+        model, prior, ys, lambda x: np.asarray(pendulum_f(jnp.asarray(x))),
+        lambda x: np.asarray(pendulum_h(jnp.asarray(x))), alpha, beta, kappa,
+    )  # fmt: skip
+    result = je.run(je.UKF(alpha=alpha, beta=beta, kappa=kappa), model, ys, prior=prior)
+    assert_results_close(result, ref, rtol=1e-9)
+
+
+def test_ukf_equals_filterpy_on_random_linear_system():
+    model, prior, ys = random_linear()
+    ys = ys.at[3, 0].set(0.3)
+    F, H = np.asarray(model.F), np.asarray(model.H)
+    ref = filterpy_ukf(model, prior, ys, lambda x: F @ x, lambda x: H @ x, 0.5, 2.0, 0.0)
+    result = je.run(je.UKF(alpha=0.5), model, ys, prior=prior)
+    assert_results_close(result, ref, rtol=1e-9)
+
+
+# ---------------------------------------------------------------------------------------------
+# Linear systems: every point set, form and noise mode is the Kalman filter
+
+
+@pytest.mark.parametrize("noise", ["additive", "augmented"])
+@pytest.mark.parametrize("form", FORMS)
+@pytest.mark.parametrize("name", list(POINT_SETS))
+def test_linear_system_equals_kalman_filter(name, form, noise):
+    model, prior, ys = random_linear()
+    ref = je.run(je.KalmanFilter(), model, ys, prior=prior)
+    result = je.run(POINT_SETS[name](form=form, noise=noise), model, ys, prior=prior)
+    assert_results_close(result, ref, rtol=1e-9)
+    np.testing.assert_allclose(result.loglik, ref.loglik, rtol=1e-9)
+    assert int(result.any_status) == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Nonlinear: forms against one another and against an independent NumPy filter
+
+
+@pytest.mark.parametrize("noise", ["additive", "augmented"])
+@pytest.mark.parametrize("name", list(POINT_SETS))
+def test_sqrt_form_equals_covariance_form_on_pendulum(name, noise):
+    model, prior, ys = pendulum()
+    ref = je.run(POINT_SETS[name](noise=noise), model, ys, prior=prior)
+    result = je.run(POINT_SETS[name](form="sqrt", noise=noise), model, ys, prior=prior)
+    assert_results_close(result, ref, rtol=1e-9)
+
+
+def numpy_sigma_point_filter(points, sqrt, f, h, Q, R, prior, ys):
+    """Plain-NumPy additive-noise sigma-point filter (eqs 1-5 of jaxest.filters.sigma_point)
+    with the matrix square root ``sqrt``; missing (NaN) entries dropped from y, yhat and S."""
+    x, P = np.array(prior.mean), np.array(prior.cov)
+    xi, Wm, Wc = points.unit_points(x.shape[0])
+    out = {name: [] for name in FIELDS + ("loglik_terms",)}
+    for y in np.asarray(ys):
+        out["predicted_mean"].append(x)
+        out["predicted_cov"].append(P)
+        X = x + xi @ sqrt(P).T
+        Y = np.array([h(s) for s in X])
+        yhat = Wm @ Y
+        obs = ~np.isnan(y)
+        dX, dY = X - Wm @ X, (Y - yhat)[:, obs]
+        S = dY.T @ (Wc[:, None] * dY) + R[np.ix_(obs, obs)]
+        K = dX.T @ (Wc[:, None] * dY) @ np.linalg.inv(S)
+        e = y[obs] - yhat[obs]
+        x, P = x + K @ e, P - K @ S @ K.T
+        e_full, S_full = np.zeros_like(y), np.eye(y.shape[0])
+        e_full[obs], S_full[np.ix_(obs, obs)] = e, S
+        loglik = -0.5 * (obs.sum() * np.log(2 * np.pi) + np.linalg.slogdet(S)[1])
+        out["loglik_terms"].append(loglik - 0.5 * e @ np.linalg.solve(S, e))
+        out["mean"].append(x)
+        out["cov"].append(P)
+        out["innovation"].append(e_full)
+        out["innovation_cov"].append(S_full)
+        FX = np.array([f(s) for s in x + xi @ sqrt(P).T])
+        x = Wm @ FX
+        P = (FX - x).T @ (Wc[:, None] * (FX - x)) + Q
+    return type("NumpyResult", (), {k: np.array(v) for k, v in out.items()})
+
+
+def eigen_sqrt(P):
+    w, U = np.linalg.eigh(P)
+    return U * np.sqrt(w)
+
+
+def numpy_pendulum(points, sqrt):
+    model, prior, ys = pendulum()
+    f = lambda x: np.asarray(pendulum_f(jnp.asarray(x)))  # noqa: E731
+    h = lambda x: np.asarray(pendulum_h(jnp.asarray(x)))  # noqa: E731
+    return numpy_sigma_point_filter(
+        points, sqrt, f, h, np.asarray(model.Q), np.asarray(model.R), prior, ys
+    )
+
+
+@pytest.mark.parametrize(
+    "name, points",
+    [("UKF-alpha0.5", UnscentedPoints(0.5, 2.0, 0.0)), ("GHKF3", GaussHermitePoints(3))],
+)
+@pytest.mark.parametrize("form", ["covariance", "svd"])
+def test_nonlinear_equals_numpy_reference(name, points, form):
+    """The covariance form draws points with chol(P), the SVD form with U D: each equals the
+    NumPy filter using the same square root (symmetric point sets make U D's sign and order
+    irrelevant), including a missing entry."""
+    model, prior, ys = pendulum()
+    ref = numpy_pendulum(points, np.linalg.cholesky if form == "covariance" else eigen_sqrt)
+    result = je.run(POINT_SETS[name](form=form), model, ys, prior=prior)
+    assert_results_close(result, ref, rtol=1e-9)
+
+
+def test_svd_form_differs_from_covariance_form_only_by_its_square_root():
+    """Reported number: the largest relative difference of the SVD form's means and covariances
+    from the covariance form's on the pendulum (points from U D instead of chol(P))."""
+    model, prior, ys = pendulum()
+    cov = je.run(je.UKF(alpha=0.5), model, ys, prior=prior)
+    svd = je.run(je.UKF(alpha=0.5, form="svd"), model, ys, prior=prior)
+    rel = max(
+        float(
+            jnp.max(jnp.abs(getattr(svd, a) - getattr(cov, a))) / jnp.max(jnp.abs(getattr(cov, a)))
+        )
+        for a in ("mean", "cov")
+    )
+    print(f"SVD vs covariance form, pendulum, UKF alpha=0.5: max relative difference {rel:.2e}")
+    assert 1e-9 < rel < 0.05
+
+
+def test_cubature_equals_ukf_alpha1_beta0_kappa0():
+    model, prior, ys = pendulum()
+    ref = je.run(je.UKF(alpha=1.0, beta=0.0, kappa=0.0), model, ys, prior=prior)
+    for form in FORMS:
+        assert_results_close(
+            je.run(je.CubatureKF(form=form), model, ys, prior=prior),
+            je.run(je.UKF(alpha=1.0, beta=0.0, kappa=0.0, form=form), model, ys, prior=prior),
+            rtol=1e-12,
+        )
+    assert_results_close(je.run(je.CubatureKF(), model, ys, prior=prior), ref, rtol=1e-12)
+
+
+def test_point_sets_are_exact_to_second_order():
+    for points, n in [
+        (UnscentedPoints(0.3, 2.0, 1.0), 4), (CubaturePoints(), 3), (GaussHermitePoints(4), 2)
+    ]:  # fmt: skip
+        xi, Wm, Wc = points.unit_points(n)
+        np.testing.assert_allclose(Wm.sum(), 1.0, rtol=1e-14)
+        np.testing.assert_allclose(Wm @ xi, np.zeros(n), atol=1e-14)
+        np.testing.assert_allclose(xi.T @ (Wc[:, None] * xi), np.eye(n), atol=1e-13)
+    xi, W, _ = GaussHermitePoints(3).unit_points(1)  # E x^4 = 3
+    np.testing.assert_allclose(W @ xi[:, 0] ** 4, 3.0, rtol=1e-13)
+
+
+# ---------------------------------------------------------------------------------------------
+# jit, vmap, grad in float64 and float32; finite gradients at repeated eigenvalues
+
+
+def loglik_of_R_scale(filt, model, prior, ys):
+    def loss(scale):
+        return je.run(filt, eqx_replace_R(model, scale), ys, prior=prior).loglik
+
+    return loss
+
+
+def eqx_replace_R(model, scale):
+    import equinox as eqx
+
+    return eqx.tree_at(lambda m: m.R, model, scale * model.R)
+
+
+@pytest.mark.parametrize("form", FORMS)
+@pytest.mark.parametrize("name", ["UKF-alpha0.5", "CKF", "GHKF3"])
+def test_grad_matches_finite_difference_float64(name, form):
+    model, prior, ys = pendulum()
+    loss = jax.jit(loglik_of_R_scale(POINT_SETS[name](form=form), model, prior, ys))
+    grad = jax.grad(loss)(1.0)
+    h = 1e-5
+    fd = (loss(1.0 + h) - loss(1.0 - h)) / (2 * h)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+@pytest.mark.parametrize("form", FORMS)
+@pytest.mark.parametrize("name", ["UKF", "CKF", "GHKF3"])
+def test_jit_vmap_grad_float32(name, form):
+    model, prior, ys = pendulum(jnp.float32)
+    filt = POINT_SETS[name](form=form)
+    loss = loglik_of_R_scale(filt, model, prior, ys)
+    value, grad = jax.jit(jax.value_and_grad(loss))(jnp.float32(1.0))
+    assert value.dtype == jnp.float32 and np.isfinite(grad)
+    ref64 = loglik_of_R_scale(filt, *pendulum())
+    np.testing.assert_allclose(value, ref64(1.0), rtol=1e-4)
+    np.testing.assert_allclose(grad, jax.grad(ref64)(1.0), rtol=1e-2)
+    scales = jnp.linspace(0.5, 2.0, 3, dtype=jnp.float32)
+    batched = jax.jit(jax.vmap(loss))(scales)
+    np.testing.assert_allclose(batched[1], loss(scales[1]), rtol=1e-5)
+
+
+@pytest.mark.parametrize("name", ["UKF-alpha0.5", "GHKF3"])
+def test_svd_form_gradient_finite_at_repeated_eigenvalues(name):
+    """P0 = I and Q = q I (repeated eigenvalues): the SVD form's gradient with respect to q is
+    finite and equals the covariance form's on a linear model, and the finite difference on the
+    pendulum."""
+    import equinox as eqx
+
+    model, _, ys = random_linear()
+    model = eqx.tree_at(lambda m: m.Q, model, jnp.eye(3))
+    prior = je.Gaussian(jnp.zeros(3), jnp.eye(3))
+
+    def loss(filt, model, q):
+        return je.run(filt, eqx.tree_at(lambda m: m.Q, model, q * model.Q), ys, prior=prior).loglik
+
+    g_svd = jax.grad(functools.partial(loss, POINT_SETS[name](form="svd"), model))(0.5)
+    g_cov = jax.grad(functools.partial(loss, POINT_SETS[name](), model))(0.5)
+    np.testing.assert_allclose(g_svd, g_cov, rtol=1e-9)
+
+    pend, _, ys = pendulum()
+    pend = eqx.tree_at(lambda m: m.Q, pend, 0.01 * jnp.eye(2))
+    prior = je.Gaussian(jnp.array([1.0, 0.0]), jnp.eye(2))
+    svd_loss = jax.jit(functools.partial(loss, POINT_SETS[name](form="svd"), pend))
+    grad = jax.grad(svd_loss)(1.0)
+    fd = (svd_loss(1.0 + 1e-5) - svd_loss(1.0 - 1e-5)) / 2e-5
+    assert np.isfinite(grad)
+    np.testing.assert_allclose(grad, fd, rtol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------------
+# status and argument checks
+
+
+def test_nonfinite_measurement_sets_status():
+    model, prior, ys = pendulum()
+    for form in FORMS:
+        result = je.run(je.UKF(form=form), model, ys.at[5, 0].set(jnp.inf), prior=prior)
+        assert int(result.status[5]) & je.Status.NONFINITE
+        assert int(result.status[4]) == 0
+
+
+def test_lost_definiteness_sets_status():
+    """A tiny alpha makes Wc_0 hugely negative: the square-root form's downdate fails and says so
+    in ``status`` instead of returning a silent NaN."""
+    model, prior, ys = pendulum()
+    result = je.run(je.UKF(alpha=1e-3, form="sqrt"), model, ys, prior=prior)
+    assert int(result.any_status) != 0
+
+
+@pytest.mark.parametrize(
+    "make, argument",
+    [
+        (lambda: je.UKF(alpha=0.0), "alpha"),
+        (lambda: je.UKF(alpha=-1.0), "alpha"),
+        (lambda: je.UKF(beta=float("nan")), "beta"),
+        (lambda: je.UKF(form="cholesky"), "form"),
+        (lambda: je.CubatureKF(noise="multiplicative"), "noise"),
+        (lambda: je.GaussHermiteKF(order=0), "order"),
+        (lambda: je.GaussHermiteKF(order=1), "order"),
+        (lambda: je.GaussHermiteKF(order=2.5), "order"),
+    ],
+)
+def test_bad_arguments_name_the_argument(make, argument):
+    with pytest.raises(ValueError, match=f"^{argument}:"):
+        make()
+
+
+def test_kappa_checked_against_dimension_before_tracing():
+    model, prior, ys = pendulum()
+    with pytest.raises(ValueError, match="^kappa:"):
+        je.run(je.UKF(kappa=-2.0), model, ys, prior=prior)
+
+
+def test_sqrt_form_requires_positive_definite_Q():
+    import equinox as eqx
+
+    model, prior, ys = pendulum()
+    singular = eqx.tree_at(lambda m: m.Q, model, jnp.zeros((2, 2)))
+    with pytest.raises(ValueError, match="Q"):
+        je.run(je.UKF(form="sqrt"), singular, ys, prior=prior)
+    assert int(je.run(je.UKF(form="svd"), singular, ys, prior=prior).any_status) == 0
