@@ -18,6 +18,7 @@ STUDIES: dict[str, str] = {
     "smf-fdi": "jaxest.studies.smf_fdi",
     "network": "jaxest.studies.network",
     "adaptive": "jaxest.studies.adaptive",
+    "sigma-point": "jaxest.studies.sigma_point",
 }
 
 
