@@ -18,6 +18,14 @@ from jaxest.filters.kalman import (
     KalmanFilter as KalmanFilter,
 )
 from jaxest.filters.parallel import ParallelKalmanFilter as ParallelKalmanFilter
+from jaxest.filters.particle import (
+    AbstractProposal as AbstractProposal,
+    GaussianTransition as GaussianTransition,
+    ParticleFilter as ParticleFilter,
+    ParticleResult as ParticleResult,
+    ParticleStatus as ParticleStatus,
+    resample as resample,
+)
 from jaxest.filters.sigma_point import (
     UKF as UKF,
     AbstractSigmaPointFilter as AbstractSigmaPointFilter,

@@ -19,6 +19,7 @@ STUDIES: dict[str, str] = {
     "network": "jaxest.studies.network",
     "adaptive": "jaxest.studies.adaptive",
     "parallel": "jaxest.studies.parallel",
+    "sigma-point": "jaxest.studies.sigma_point",
 }
 
 

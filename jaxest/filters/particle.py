@@ -1,0 +1,340 @@
+"""The particle filter (sequential importance resampling) on the estimator protocol.
+
+N particles x_k^i with normalised weights W_k^i represent p(x_k | y_0..y_k). One step k
+(Doucet & Johansen, "A tutorial on particle filtering and smoothing", 2011, sec. 4):
+
+1. draw x_k^i ~ q(x_k | x_{k-1}^i, y_k): the model's transition (bootstrap; Gordon, Salmond &
+   Smith 1993) or a user's :class:`AbstractProposal`;
+2. weight::
+
+       log w_k^i = log W_{k-1}^i + log g(y_k | x_k^i)
+                   + log p(x_k^i | x_{k-1}^i) - log q(x_k^i | x_{k-1}^i, y_k)          (1)
+
+   (the last two cancel for the bootstrap proposal), g the Gaussian measurement density of the
+   observed (non-NaN) entries of y_k;
+3. the likelihood increment p(y_k | y_0..y_{k-1}) ~= sum_i w_k^i (the W_{k-1} sum to one, and
+   are 1/N after a resampling: the resampling-aware increment, Doucet & Johansen eq. 48)
+                                                                                        (2)
+   and W_k^i = w_k^i / sum_j w_k^j, ESS = 1 / sum_i (W_k^i)^2;
+4. if ESS < ``ess_threshold`` N, resample: ancestors a_i drawn by the chosen scheme
+   (:func:`resample`), W = 1/N.
+
+The transition to x_{k+1} is computed at the end of step k (it needs u_k), so the state holds,
+per particle, the Gaussian p(x_{k+1} | x_k^i) = N(f(x_k^i, u_k, k), A_i A_i^T), A_i = G_i L_Q;
+the prior is the first such Gaussian (the driver gives ``init`` no key).
+
+Weights are NaN-safe: a non-finite increment counts as -inf (zero weight). When no particle has
+a finite weight, the step sets :attr:`ParticleStatus.WEIGHTS_DEGENERATE`, ignores y_k (weights
+stay those of step k-1) and adds log(tiny) of the dtype to the log-likelihood: every output stays
+finite.
+
+Gradients (``differentiable=True``): particles are reparameterised (x = m + A z), so derivatives
+flow through them, but resampling indices are discrete. Following Scibior & Wood
+("Differentiable particle filtering without modifying the forward pass", 2021) the resampled
+log-weights are set to log W_{a_i} - stop_gradient(log W_{a_i}) - log N: the forward pass is
+unchanged (the value is -log N) and the derivative carries the score d log W_{a_i} of the
+ancestor draw. With multinomial resampling at every step (``ess_threshold=1``), the derivative of
+the likelihood estimate Z^ = exp(loglik) so obtained is then an *unbiased* estimate of
+d p(y_0..y_{T-1}) / d theta (the score-function identity for the ancestors, the pathwise one for
+the particles); the derivative of loglik, dZ^/Z^, is a ratio of unbiased estimates: *consistent*
+as N grows (bias O(1/N)), not unbiased. Stratified and systematic ancestors are not drawn
+independently from W, and an adaptive threshold makes the resampling decision itself depend
+on theta, so those choices are consistent but carry a (small) bias. ``differentiable=False``
+drops the score term (resampled log-weights are the constant -log N): the plain derivative of
+the forward pass, which is biased for every N (it ignores how the ancestors depend on theta).
+"""
+
+from __future__ import annotations
+
+import abc
+import math
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
+
+from jaxest._checks import check_gaussian_arguments
+from jaxest._estimator import AbstractEstimator, AbstractResult
+from jaxest._status import Status, finite_status, status_where
+from jaxest.filters.common import gaussian_loglik, masked_measurement
+from jaxest.linalg import cholesky, solve_triangular
+
+#: the particle filter's status flags: the core's and WEIGHTS_DEGENERATE
+ParticleStatus = Status.extend(
+    "ParticleStatus",
+    WEIGHTS_DEGENERATE=(
+        64,
+        "every particle's weight underflowed or was not finite, so the measurement was ignored: "
+        "use more particles, a proposal that looks at y_k, or check the measurement for outliers",
+    ),
+)
+
+RESAMPLING = ("systematic", "stratified", "multinomial")
+
+
+def resample(key, weights: Float[Array, " N"], scheme: str = "systematic") -> Int[Array, " N"]:
+    """Ancestor indices a_1..a_N by inverting the weights' CDF at N uniforms u_i:
+
+    - multinomial: u_i iid U(0, 1) (each a_i ~ W independently);
+    - stratified: u_i = (i + U_i) / N, U_i iid U(0, 1) (Kitagawa 1996);
+    - systematic: u_i = (i + U) / N, one U ~ U(0, 1) (Carpenter, Clifford & Fearnhead 1999):
+      particle j gets floor(N W_j) or ceil(N W_j) children.
+
+    ``weights`` are non-negative with a positive sum (normalised here); zero-weight particles
+    are never chosen.
+    """
+    N = weights.shape[0]
+    dtype = weights.dtype
+    if scheme == "multinomial":
+        u = jax.random.uniform(key, (N,), dtype)
+    elif scheme == "stratified":
+        u = (jnp.arange(N, dtype=dtype) + jax.random.uniform(key, (N,), dtype)) / N
+    elif scheme == "systematic":
+        u = (jnp.arange(N, dtype=dtype) + jax.random.uniform(key, (), dtype)) / N
+    else:
+        raise ValueError(f"resampling: expected one of {RESAMPLING}, got {scheme!r}")
+    cdf = jnp.cumsum(weights)
+    cdf = cdf / cdf[-1]
+    return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), N - 1)
+
+
+class GaussianTransition(eqx.Module):
+    """p(x_k | x_{k-1}) of one particle: N(mean, factor factor^T) (for x_0: the prior)."""
+
+    mean: Float[Array, " n"]
+    factor: Float[Array, "n n"]
+
+    def sample(self, key):
+        """A reparameterised draw mean + factor z, z ~ N(0, I)."""
+        z = jax.random.normal(key, self.factor.shape[-1:], self.mean.dtype)
+        return self.mean + self.factor @ z
+
+    def log_prob(self, x):
+        """log N(x; mean, factor factor^T) (needs a non-singular covariance)."""
+        L = cholesky(self.factor @ self.factor.T)
+        whitened = solve_triangular(L, x - self.mean, lower=True)
+        return gaussian_loglik(whitened, L, x.shape[0])
+
+
+class AbstractProposal(eqx.Module):
+    """A proposal q(x_k | x_{k-1}, y_k) for :class:`ParticleFilter`, for one particle.
+
+    ``transition`` is that particle's p(x_k | x_{k-1}^i) (a :class:`GaussianTransition`: at
+    k = 0, the prior); ``y`` the measurement y_k (NaN = missing), ``u`` and ``k`` its input and
+    index. ``sample`` must be reparameterised (a differentiable function of the model and a
+    noise draw) for gradients to be meaningful; ``log_prob`` is the log-density of what
+    ``sample`` draws.
+    """
+
+    @abc.abstractmethod
+    def sample(self, model, transition: GaussianTransition, k, y, u, key) -> Float[Array, " n"]:
+        """One draw x_k ~ q(. | x_{k-1}, y_k)."""
+
+    @abc.abstractmethod
+    def log_prob(self, model, x, transition: GaussianTransition, k, y, u) -> Float[Array, ""]:
+        """log q(x | x_{k-1}, y_k)."""
+
+
+class ParticleState(eqx.Module):
+    """Per particle: p(x_k | x_{k-1}^i) and log W_{k-1}^i; and log p(y_0..y_{k-1})."""
+
+    transition: GaussianTransition  # batched over particles: mean (N, n), factor (N, n, n)
+    log_weights: Float[Array, " N"]
+    loglik: Float[Array, ""]
+
+
+class ParticleOutput(eqx.Module):
+    """One step's output: weighted mean and covariance of x_k, ESS, log-likelihood term."""
+
+    mean: Float[Array, " n"] | None
+    cov: Float[Array, "n n"] | None
+    ess: Float[Array, ""] | None
+    loglik: Float[Array, ""] | None
+    status: Int[Array, ""] | None
+    particles: Float[Array, "N n"] | None
+    log_weights: Float[Array, " N"] | None
+
+
+class ParticleResult(AbstractResult):
+    """What :class:`ParticleFilter` returns (unsaved fields ``None``): the weighted mean and
+    covariance of x_k given y_0..y_k, the effective sample size before resampling, the
+    log-likelihood terms (2), the status bits (:data:`ParticleStatus`), and, when saved, the
+    particles x_k^i with their normalised log-weights."""
+
+    flags: ClassVar = ParticleStatus
+
+    final_state: ParticleState
+    status: Int[Array, " T"] | None = None
+    any_status: Int[Array, ""] | None = None
+    saved: object = None
+    mean: Float[Array, "T n"] | None = None
+    cov: Float[Array, "T n n"] | None = None
+    ess: Float[Array, " T"] | None = None
+    loglik_terms: Float[Array, " T"] | None = None
+    particles: Float[Array, "T N n"] | None = None
+    log_weights: Float[Array, "T N"] | None = None
+
+    @property
+    def loglik(self) -> Float[Array, ""]:
+        """The estimate of log p(y_0, ..., y_{T-1}) (kept whatever was saved)."""
+        return self.final_state.loglik
+
+
+class ParticleFilter(AbstractEstimator):
+    """Sequential importance resampling (module docstring: eqs 1-2, gradients).
+
+    Args:
+        num_particles: N >= 1.
+        resampling: ``"systematic"`` (default), ``"stratified"`` or ``"multinomial"``.
+        ess_threshold: resample when ESS < ess_threshold N; in (0, 1] (1: at every step where
+            the weights are not all equal).
+        proposal: ``None`` for the bootstrap proposal (the model's transition), or an
+            :class:`AbstractProposal`.
+        differentiable: keep the score of the resampling in the derivative (Scibior & Wood).
+
+    Run as ``jaxest.run(ParticleFilter(...), model, ys, prior=Gaussian(m0, P0), key=key)`` on a
+    :class:`~jaxest.LinearGaussian` or :class:`~jaxest.NonlinearGaussian` model (Q positive
+    definite; Q_k may depend on u and k, not on x). Cost O(N) per step.
+    """
+
+    needs_key: ClassVar[bool] = True
+    default_fields: ClassVar[tuple[str, ...]] = ("mean", "cov", "ess", "loglik", "status")
+
+    num_particles: int = eqx.field(static=True)
+    resampling: str = eqx.field(static=True)
+    ess_threshold: float = eqx.field(static=True)
+    proposal: AbstractProposal | None
+    differentiable: bool = eqx.field(static=True)
+
+    def __init__(
+        self,
+        num_particles: int = 1000,
+        resampling: str = "systematic",
+        ess_threshold: float = 0.5,
+        proposal: AbstractProposal | None = None,
+        differentiable: bool = True,
+    ):
+        if isinstance(num_particles, bool) or not isinstance(num_particles, int):
+            raise ValueError(f"num_particles: expected an int, got {num_particles!r}")
+        if num_particles < 1:
+            raise ValueError(f"num_particles: must be at least 1, got {num_particles}")
+        if resampling not in RESAMPLING:
+            raise ValueError(f"resampling: expected one of {RESAMPLING}, got {resampling!r}")
+        if not (isinstance(ess_threshold, int | float) and 0.0 < ess_threshold <= 1.0):
+            raise ValueError(f"ess_threshold: must lie in (0, 1], got {ess_threshold!r}")
+        if proposal is not None and not isinstance(proposal, AbstractProposal):
+            raise ValueError(
+                f"proposal: expected None or an AbstractProposal, got {type(proposal).__name__}"
+            )
+        self.num_particles, self.resampling = num_particles, resampling
+        self.ess_threshold, self.proposal = float(ess_threshold), proposal
+        self.differentiable = bool(differentiable)
+
+    def check(self, model, ys, inputs, prior) -> None:
+        check_gaussian_arguments(model, ys, inputs, prior, positive_Q=True)
+
+    def init(self, model, prior) -> ParticleState:
+        N = self.num_particles
+        dtype = jnp.result_type(prior.mean)
+        chol = cholesky(jnp.asarray(prior.cov, dtype))
+        transition = GaussianTransition(
+            jnp.broadcast_to(prior.mean, (N, *prior.mean.shape)),
+            jnp.broadcast_to(chol, (N, *chol.shape)),
+        )
+        return ParticleState(transition, jnp.full((N,), -math.log(N), dtype), jnp.zeros((), dtype))
+
+    def step(self, model, state: ParticleState, k, y, u, key):
+        key_propose, key_resample = jax.random.split(key)
+        x, log_increment = self._propose(model, state.transition, k, y, u, key_propose)
+        log_increment = jnp.where(jnp.isfinite(log_increment), log_increment, -jnp.inf)
+        degenerate = ~jnp.any(jnp.isfinite(log_increment))
+        log_w = state.log_weights + jnp.where(degenerate, 0.0, log_increment)  # eq 1
+        loglik = jax.nn.logsumexp(log_w)  # eq 2 (the previous weights sum to one)
+        tiny = jnp.log(jnp.finfo(log_w.dtype).tiny)
+        loglik = jnp.where(degenerate, tiny, loglik)
+        log_W = log_w - jax.nn.logsumexp(log_w)
+        W = jnp.exp(log_W)
+        mean, cov = weighted_moments(x, W)
+        ess = 1.0 / jnp.sum(W**2)
+        log_W_next, ancestors = self._resample(log_W, ess, key_resample)
+        x_next = x[ancestors]
+        status = finite_status(mean, cov, loglik) | status_where(
+            degenerate, ParticleStatus.WEIGHTS_DEGENERATE
+        )
+        transition = jax.vmap(lambda xi: model_transition(model, xi, u, k))(x_next)
+        output = ParticleOutput(mean, cov, ess, loglik, status, x, log_W)
+        return ParticleState(transition, log_W_next, state.loglik + loglik), output
+
+    def _propose(self, model, transition, k, y, u, key):
+        """Particles x_k^i and their log-weight increments (eq 1 without log W_{k-1})."""
+        keys = jax.random.split(key, self.num_particles)
+        if self.proposal is None:
+            x = jax.vmap(lambda t, kk: t.sample(kk))(transition, keys)
+            return x, measurement_loglik(model, x, k, y, u)
+
+        def one(t, kk):
+            xi = self.proposal.sample(model, t, k, y, u, kk)
+            correction = t.log_prob(xi) - self.proposal.log_prob(model, xi, t, k, y, u)
+            return xi, correction
+
+        x, correction = jax.vmap(one)(transition, keys)
+        return x, measurement_loglik(model, x, k, y, u) + correction
+
+    def _resample(self, log_W, ess, key):
+        """Log-weights and ancestors after the ESS-triggered resampling (step 4)."""
+        N = self.num_particles
+        resampled = ess < self.ess_threshold * N
+        drawn = resample(key, jnp.exp(log_W), self.resampling)
+        ancestors = jnp.where(resampled, drawn, jnp.arange(N))
+        uniform = jnp.full_like(log_W, -math.log(N))
+        if self.differentiable:  # Scibior & Wood: value -log N, derivative d log W_{a_i}
+            chosen = log_W[drawn]
+            uniform = uniform + chosen - jax.lax.stop_gradient(chosen)
+        return jnp.where(resampled, uniform, log_W), ancestors
+
+    def result(self, outputs: ParticleOutput, final_state: ParticleState) -> ParticleResult:
+        return ParticleResult(
+            final_state=final_state,
+            status=outputs.status,
+            mean=outputs.mean,
+            cov=outputs.cov,
+            ess=outputs.ess,
+            loglik_terms=outputs.loglik,
+            particles=outputs.particles,
+            log_weights=outputs.log_weights,
+        )
+
+
+def weighted_moments(x, W):
+    """sum_i W_i x_i and sum_i W_i (x_i - m)(x_i - m)^T; zero-weight particles (possibly
+    non-finite) take no part."""
+    x = jnp.where(W[:, None] > 0, x, 0.0)
+    mean = W @ x
+    d = x - mean
+    return mean, (W[:, None] * d).T @ d
+
+
+def measurement_loglik(model, x, k, y, u) -> Float[Array, " N"]:
+    """log g(y_k | x^i) of the observed entries of y_k for every particle (0 if none observed)."""
+    y_pred = jax.vmap(lambda xi: model.h(xi, u, k))(x)
+    R = model.measurement_cov(k)
+    no_jacobian = jnp.zeros((y.shape[0], 0), R.dtype)
+    meas = masked_measurement(y, y_pred, no_jacobian, R)  # innovations (N, m)
+    L = cholesky(meas.R)
+    whitened = solve_triangular(L, meas.innovation.T, lower=True).T
+    return jax.vmap(lambda w: gaussian_loglik(w, L, meas.num_observed))(whitened)
+
+
+def model_transition(model, x, u, k) -> GaussianTransition:
+    """p(x_{k+1} | x_k = x) = N(f(x, u_k, k), G Q G^T), with a square factor of G L_Q:
+    zero-padded when q < n, reduced by a QR factorisation when q > n."""
+    G, Q = model.process_noise(x, u, k)
+    A = G @ cholesky(Q)
+    n, q = A.shape
+    if q < n:
+        A = jnp.concatenate([A, jnp.zeros((n, n - q), A.dtype)], axis=1)
+    elif q > n:
+        A = jnp.linalg.qr(A.T, mode="r").T  # A A^T = R^T R
+    return GaussianTransition(model.f(x, u, k), A)
