@@ -136,3 +136,42 @@ def solve_triangular(L, B, *, lower: bool):
         acc = B[..., i, :] - sum((L[..., i, k, None] * X[k] for k in done), 0.0)
         X[i] = acc / L[..., i, i, None]
     return jnp.stack(X, -2)
+
+
+def _qr_lower(X, *, with_q: bool):
+    """QR of X^T (X of shape (..., n, p), p >= n) with R's diagonal made non-negative: returns
+    (Q, L = R^T), X = L Q^T; Q is None unless ``with_q``."""
+    Xt = jnp.swapaxes(X, -1, -2)
+    if with_q:
+        Q, R = jnp.linalg.qr(Xt)
+    else:
+        Q, R = None, jnp.linalg.qr(Xt, mode="r")
+    sign = jnp.where(jnp.diagonal(R, axis1=-2, axis2=-1) < 0, -1.0, 1.0).astype(R.dtype)
+    L = jnp.swapaxes(R * sign[..., :, None], -1, -2)
+    return (None if Q is None else Q * sign[..., None, :]), L
+
+
+def tria(X):
+    """The lower-triangular L (n x n, non-negative diagonal) with L L^T = X X^T for X of shape
+    (..., n, p), by QR of X^T without forming X X^T; X is zero-padded to n columns when p < n.
+    Differentiated through QR (needs X of full row rank); :func:`tria_gram` where only L L^T
+    matters."""
+    n, p = X.shape[-2:]
+    if p < n:
+        X = jnp.concatenate([X, jnp.zeros((*X.shape[:-1], n - p), X.dtype)], -1)
+    return _qr_lower(X, with_q=False)[1]
+
+
+@jax.custom_jvp
+def tria_gram(X):
+    """:func:`tria` (p >= n) with the tangent dL = dX Q (X^T = Q R, L = R^T = X Q): a tangent of
+    L L^T whatever the rank of X (QR's own derivative needs R invertible), but not lower
+    triangular, so only for factors that enter through L L^T."""
+    return _qr_lower(X, with_q=False)[1]
+
+
+@tria_gram.defjvp
+def _tria_gram_jvp(primals, tangents):
+    (X,), (dX,) = primals, tangents
+    Q, L = _qr_lower(X, with_q=True)
+    return L, dX @ Q

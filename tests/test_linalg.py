@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest.linalg import SMALL_FACTOR, cho_solve_lower, cholesky, solve_triangular
+from jaxest.linalg import SMALL_FACTOR, cho_solve_lower, cholesky, solve_triangular, tria, tria_gram
 
 
 def spd(rng, n, cond=1e3):
@@ -47,3 +47,32 @@ def test_gradient_of_logdet_matches_finite_differences():
     fd = (logdet(1e-6) - logdet(-1e-6)) / 2e-6
     np.testing.assert_allclose(grad, fd, rtol=1e-7)
     np.testing.assert_allclose(grad, jnp.trace(jnp.linalg.solve(A, dA)), rtol=1e-10)
+
+
+@pytest.mark.parametrize("p", [2, 4, 7])
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_tria_is_the_cholesky_factor_of_the_gram_matrix(p, dtype):
+    """tria(X) is lower triangular with a non-negative diagonal and L L^T = X X^T; with X of
+    full row rank it is NumPy's Cholesky factor of X X^T (p < n: padded, rank p)."""
+    rng = np.random.default_rng(p)
+    X = rng.normal(size=(5, 4, p))
+    L = jax.jit(jax.vmap(tria))(jnp.asarray(X, dtype))
+    assert L.shape == (5, 4, 4) and L.dtype == dtype
+    tol = 1e-5 if dtype == jnp.float32 else 1e-12
+    np.testing.assert_array_equal(np.triu(L, 1), 0)
+    assert np.all(np.diagonal(L, axis1=1, axis2=2) >= 0)
+    np.testing.assert_allclose(L @ np.swapaxes(L, 1, 2), X @ np.swapaxes(X, 1, 2), atol=tol * 10)
+    if p >= 4:
+        np.testing.assert_allclose(L, np.linalg.cholesky(X @ np.swapaxes(X, 1, 2)), atol=tol * 10)
+
+
+def test_tria_gram_tangent_is_a_tangent_of_the_gram_matrix_at_any_rank():
+    """d(L L^T) from tria_gram's tangent equals d(X X^T), also for X of rank 2 < n = 4, where
+    QR's own derivative is not defined; the primal equals tria's."""
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(4, 2)) @ rng.normal(size=(2, 6))  # rank 2
+    dX = rng.normal(size=(4, 6))
+    L, dL = jax.jvp(tria_gram, (jnp.asarray(X),), (jnp.asarray(dX),))
+    np.testing.assert_allclose(L, tria(jnp.asarray(X)), atol=1e-12)
+    assert np.all(np.isfinite(dL))
+    np.testing.assert_allclose(dL @ L.T + L @ dL.T, dX @ X.T + X @ dX.T, atol=1e-10)

@@ -52,7 +52,7 @@ This is the paper's combination with its 2n x 2n triangularisation split into tw
 so they have full rank and QR's derivative exists, whereas the paper's pre-array is
 rank-deficient whenever J_j is (fewer measurements than states, missing data). U^ and Z enter
 (4) only through U^ U^^T and Z Z^T, so their own tria uses the tangent dL = dX Q (X^T = Q R),
-which is a valid tangent of L L^T whatever the rank (:func:`tria`).
+which is a valid tangent of L L^T whatever the rank (:func:`jaxest.linalg.tria_gram`).
 
 Outputs. The prefix of element k gives x(k+1|k); step k's output needs x(k|k-1), P(k|k-1) and
 y_k. Every element therefore also carries an auxiliary element (the identity for a single step)
@@ -87,37 +87,14 @@ from jaxest.filters.base import (
 from jaxest.filters.common import gaussian_loglik, masked_measurement
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.filters.sqrt_kf import SquareRootKF
-from jaxest.linalg import cholesky, sandwich, solve_triangular, symmetrize
+from jaxest.linalg import cholesky, sandwich, solve_triangular, symmetrize, tria, tria_gram
 from jaxest.models import LinearGaussian
-
-
-@jax.custom_jvp
-def tria(X):
-    """Lower-triangular L with L L^T = X X^T for X of shape (..., n, p), p >= n (QR of X^T).
-
-    Its derivative is the tangent dL = dX Q of L L^T (X^T = Q R, L = R^T = X Q): defined whatever
-    the rank of X (QR's own derivative needs R invertible), but not lower triangular, so use it
-    only where L enters through L L^T.
-    """
-    return jnp.swapaxes(jnp.linalg.qr(jnp.swapaxes(X, -1, -2), mode="r"), -1, -2)
-
-
-@tria.defjvp
-def _tria_jvp(primals, tangents):
-    (X,), (dX,) = primals, tangents
-    Q, R = jnp.linalg.qr(jnp.swapaxes(X, -1, -2))
-    return jnp.swapaxes(R, -1, -2), dX @ Q
-
-
-def lower_factor(X):
-    """tria(X) with QR's own (lower-triangular) derivative, for full-rank X used in solves."""
-    return jnp.swapaxes(jnp.linalg.qr(jnp.swapaxes(X, -1, -2), mode="r"), -1, -2)
 
 
 def square_factor(X, cols: int):
     """L with ``cols`` columns and L L^T = X X^T, for X of shape (r, p), r <= cols."""
     if X.shape[1] > cols:
-        X = tria(X)
+        X = tria_gram(X)
     return jnp.concatenate([X, jnp.zeros((X.shape[0], cols - X.shape[1]), X.dtype)], axis=1)
 
 
@@ -204,14 +181,14 @@ def combine_square_root(e: SquareRootElement, l: SquareRootElement) -> SquareRoo
     eye = jnp.eye(N, dtype=e.A.dtype)
     V = l.Z.T @ e.U
     pre = jnp.stack([jnp.concatenate([V.T, eye], 1), jnp.concatenate([V, eye], 1)])
-    Xi_Om = lower_factor(pre)  # Xi and Om
+    Xi_Om = tria(pre)  # Xi and Om
     # both triangular solves in one batched call (one LAPACK call at a time, jaxest.montecarlo)
     rhs = jnp.stack([jnp.concatenate([e.U.T, V.T], 1), jnp.concatenate([l.Z.T, 0 * eye], 1)])
     W = jax.scipy.linalg.solve_triangular(Xi_Om, rhs, lower=True)
     Xi, K, KV, Om_Z = Xi_Om[0], W[0, :, :N], W[0, :, N:], W[1, :, :N]
     # K = Xi^-1 U_i^T, KV = Xi^-1 U_i^T Z_j, Om_Z = Om^-1 Z_j^T
     M = eye - K.T @ KV @ l.Z.T  # (I + C_i J_j)^-1
-    U, Z = tria(jnp.stack([jnp.concatenate([l.A @ K.T, l.U], 1),
+    U, Z = tria_gram(jnp.stack([jnp.concatenate([l.A @ K.T, l.U], 1),
                            jnp.concatenate([e.A.T @ Om_Z.T, e.Z], 1)]))  # fmt: skip
     logdet = jnp.sum(jnp.log(jnp.abs(jnp.diag(Xi))))  # ln det(I + C_i J_j) / 2
     return SquareRootElement(l.A @ M @ e.A, U, Z, e.logc + l.logc - logdet)

@@ -59,7 +59,7 @@ from jaxest._checks import check_gaussian_arguments
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import Status, finite_status, status_where
 from jaxest.filters.common import gaussian_loglik, masked_measurement
-from jaxest.linalg import cholesky, solve_triangular
+from jaxest.linalg import cholesky, solve_triangular, tria
 
 #: the particle filter's status flags: the core's and WEIGHTS_DEGENERATE
 ParticleStatus = Status.extend(
@@ -336,5 +336,5 @@ def model_transition(model, x, u, k) -> GaussianTransition:
     if q < n:
         A = jnp.concatenate([A, jnp.zeros((n, n - q), A.dtype)], axis=1)
     elif q > n:
-        A = jnp.linalg.qr(A.T, mode="r").T  # A A^T = R^T R
+        A = tria(A)
     return GaussianTransition(model.f(x, u, k), A)

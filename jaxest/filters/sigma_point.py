@@ -65,24 +65,21 @@ from jaxest.filters.sigma_points import (
     GaussHermitePoints,
     UnscentedPoints,
 )
-from jaxest.linalg import cho_solve_lower, cholesky, cov_from_factor, solve_triangular, symmetrize
+from jaxest.linalg import (
+    cho_solve_lower,
+    cholesky,
+    cov_from_factor,
+    solve_triangular,
+    symmetrize,
+    tria,
+)
 
 FORMS = ("covariance", "sqrt", "svd")
 NOISES = ("additive", "augmented")
 
 
 # --------------------------------------------------------------------------------------------
-# Factor primitives: triangularisation, Cholesky downdate, eigen-factors with a safe tangent
-
-
-def tria(rows):
-    """Lower-triangular L with positive diagonal and L L^T = rows^T rows (QR of ``rows``): the
-    Cholesky factor of rows^T rows, computed without forming it."""
-    n = rows.shape[-1]
-    if rows.shape[0] < n:
-        rows = jnp.concatenate([rows, jnp.zeros((n - rows.shape[0], n), rows.dtype)])
-    L = jnp.linalg.qr(rows, mode="r").T
-    return L * jnp.where(jnp.diag(L) < 0, -1.0, 1.0).astype(L.dtype)
+# Factor primitives: Cholesky downdate, eigen-factors with a safe tangent
 
 
 def cholesky_downdate(L, v):
@@ -230,7 +227,7 @@ class SquareRootForm(AbstractForm):
     def combine(self, dev, Wc, noise_sqrt):
         plus, minus = _split_weights(Wc)
         rows = jnp.sqrt(jnp.asarray(Wc[plus], dev.dtype))[:, None] * dev[plus]
-        L = tria(jnp.concatenate([rows, noise_sqrt.T]))
+        L = tria(jnp.concatenate([rows.T, noise_sqrt], 1))
         for i in minus:
             L = cholesky_downdate(L, np.sqrt(-Wc[i]).astype(dev.dtype) * dev[i])
         return CholeskyFactor(L)

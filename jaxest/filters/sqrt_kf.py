@@ -12,12 +12,7 @@ import jax.numpy as jnp
 
 from jaxest.filters.base import AbstractGaussianFilter, CholeskyFactor, StepOutput
 from jaxest.filters.common import gaussian_loglik, masked_measurement, step_status
-from jaxest.linalg import cholesky, solve_triangular
-
-
-def lower_factor(pre_array_transposed):
-    """The lower-triangular L with L L^T = A A^T, for A^T given (QR of A^T)."""
-    return jnp.linalg.qr(pre_array_transposed, mode="r").T
+from jaxest.linalg import cholesky, solve_triangular, tria
 
 
 class SquareRootKF(AbstractGaussianFilter):
@@ -37,13 +32,13 @@ class SquareRootKF(AbstractGaussianFilter):
         meas = masked_measurement(y, y_pred, H, R)
         m = meas.R.shape[0]
         pre = jnp.block([[cholesky(meas.R), meas.H @ S], [jnp.zeros((n, m), S.dtype), S]])
-        post = lower_factor(pre.T)
+        post = tria(pre)
         Se, Kbar, S_post = post[:m, :m], post[m:, :m], post[m:, m:]
         whitened = solve_triangular(Se, meas.innovation, lower=True)
         x_post = x + Kbar @ whitened
         loglik = gaussian_loglik(whitened, Se, meas.num_observed)
         x_next, F, G, Q = model.transition(x_post, u, k)
-        S_next = lower_factor(jnp.concatenate([S_post.T @ F.T, cholesky(Q).T @ G.T]))
+        S_next = tria(jnp.concatenate([F @ S_post, G @ cholesky(Q)], 1))
         P_post = S_post @ S_post.T
         status = step_status(x_next, S_next, loglik, positive=jnp.all(jnp.diag(S_post) != 0))
         out = StepOutput(
