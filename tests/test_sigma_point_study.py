@@ -53,3 +53,5 @@ def test_quick_study_writes_the_summary(tmp_path):
     assert np.all(np.abs(tuning["z_scores"]) < 4)
     assert (out / "filters.png").stat().st_size > 0
     assert "## bearings" in (out / "tables.md").read_text()
+    conv = summary["pf_loglik"]["by_particles"]
+    assert conv[1000]["std"] < conv[100]["std"] / 2  # 1/sqrt(N) would give 3.2
