@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import jax
 import jax.numpy as jnp
@@ -27,7 +26,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import emit_json, timed  # noqa: E402
 
 T, RUNS, DT, GRAVITY = 1000, 200, 0.0125, 9.81
 ALPHA, BETA, KAPPA = 1.0, 2.0, 0.0
@@ -81,20 +80,6 @@ def dynamax_fn():
         return post.marginal_loglik, post.filtered_means
 
     return loglik
-
-
-def timed(fn, args, repeats=5):
-    """(compile seconds, best run seconds) of jax.jit(fn)(*args)."""
-    start = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(*args))
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        best = min(best, time.perf_counter() - start)
-    return compile_s, best
 
 
 def main(argv=None):

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import jax
 import jax.numpy as jnp
@@ -23,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jaxest as je  # noqa: E402
 from jaxest.filters import KalmanFilter  # noqa: E402
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import emit_json, timed  # noqa: E402
 from jaxest.systems.duffing import Duffing  # noqa: E402
 
 T, RUNS = 1000, 200
@@ -86,20 +85,6 @@ def duffing_problem():
         return post.marginal_loglik, post.filtered_means
 
     return model, prior, jaxest_loglik, dynamax_loglik
-
-
-def timed(fn, args, repeats=5):
-    """(compile seconds, best run seconds) of jax.jit(fn)(*args)."""
-    start = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(*args))
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        best = min(best, time.perf_counter() - start)
-    return compile_s, best
 
 
 def passes(loglik):

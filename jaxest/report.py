@@ -1,11 +1,13 @@
-"""Writing study outputs: JSON summaries and Markdown tables."""
+"""Study and benchmark outputs: JSON summaries, Markdown tables, and timing of compiled calls."""
 
 from __future__ import annotations
 
 import json
 import math
+import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 
@@ -48,3 +50,18 @@ def emit_json(data, path=None) -> str:
         Path(path).write_text(text)
     print(text)
     return text
+
+
+def timed(fn, args, repeats: int = 5) -> tuple[float, float]:
+    """(compile seconds, best run seconds) of ``jax.jit(fn)(*args)``: compiled ahead of time,
+    run once to warm up, then the fastest of ``repeats`` runs (the benchmarks' per-step times)."""
+    start = time.perf_counter()
+    compiled = jax.jit(fn).lower(*args).compile()
+    compile_s = time.perf_counter() - start
+    jax.block_until_ready(compiled(*args))
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(compiled(*args))
+        best = min(best, time.perf_counter() - start)
+    return compile_s, best

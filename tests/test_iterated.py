@@ -1,13 +1,13 @@
 """The iterated EKF against the EKF / Kalman filter (one iteration) and an independent NumPy
 Gauss-Newton / Levenberg-Marquardt implementation (normal equations, not the Kalman form)."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxest as je
+from tests.gradients import check_grad_float64_and_float32
 
 DT, T = 0.1, 20
 
@@ -118,30 +118,10 @@ def test_linear_model_undamped_iterations_are_the_kalman_filter():
     np.testing.assert_allclose(result.loglik, ref.loglik, rtol=1e-9)
 
 
-def loglik_of_R_scale(filt, model, prior, ys):
-    def loss(scale):
-        return je.run(filt, eqx.tree_at(lambda m: m.R, model, scale * model.R), ys, prior=prior)
-
-    return lambda scale: loss(scale).loglik
-
-
 @pytest.mark.parametrize("damping", [0.0, 1.0])
 def test_jit_vmap_grad_float64_and_float32(damping):
-    """d loglik / d (R scale) equals the central finite difference in float64; in float32 the
-    jitted, vmapped value and gradient follow the float64 ones."""
-    filt = je.IteratedEKF(iterations=3, damping=damping)
-    value_and_grad = jax.jit(jax.value_and_grad(loglik_of_R_scale(filt, *tracking())))
-    fd = (value_and_grad(1.0 + 1e-5)[0] - value_and_grad(1.0 - 1e-5)[0]) / 2e-5
-    np.testing.assert_allclose(value_and_grad(1.0)[1], fd, rtol=1e-6)
-
-    loss32 = loglik_of_R_scale(filt, *tracking(jnp.float32))
-    scales = jnp.array([0.5, 1.0, 2.0], jnp.float32)
-    values, grads = jax.jit(jax.vmap(jax.value_and_grad(loss32)))(scales)
-    assert values.dtype == grads.dtype == jnp.float32
-    for scale, value, grad in zip(scales, values, grads, strict=True):
-        value64, grad64 = value_and_grad(float(scale))
-        np.testing.assert_allclose(value, value64, rtol=1e-4)
-        np.testing.assert_allclose(grad, grad64, rtol=1e-2, atol=1e-2)
+    """Finite-difference gradient in float64; float32 under jit and vmap follows float64."""
+    check_grad_float64_and_float32(je.IteratedEKF(iterations=3, damping=damping), tracking)
 
 
 @pytest.mark.parametrize(

@@ -12,6 +12,7 @@ from filterpy.kalman import MerweScaledSigmaPoints, UnscentedKalmanFilter
 
 import jaxest as je
 from jaxest.filters.sigma_points import CubaturePoints, GaussHermitePoints, UnscentedPoints
+from tests.gradients import check_grad_float64_and_float32
 
 DT, GRAVITY, T = 0.1, 9.81, 25
 FORMS = ("covariance", "sqrt", "svd")
@@ -253,19 +254,6 @@ def test_point_sets_are_exact_to_second_order():
 # jit, vmap, grad in float64 and float32; finite gradients at repeated eigenvalues
 
 
-def loglik_of_R_scale(filt, model, prior, ys):
-    def loss(scale):
-        return je.run(filt, eqx_replace_R(model, scale), ys, prior=prior).loglik
-
-    return loss
-
-
-def eqx_replace_R(model, scale):
-    import equinox as eqx
-
-    return eqx.tree_at(lambda m: m.R, model, scale * model.R)
-
-
 @pytest.mark.parametrize(
     "name, form, noise",
     [("UKF-alpha0.5", "covariance", "additive"), ("UKF-alpha0.5", "sqrt", "additive"),
@@ -273,22 +261,8 @@ def eqx_replace_R(model, scale):
      ("GHKF3", "sqrt", "augmented")],
 )  # fmt: skip
 def test_jit_vmap_grad_float64_and_float32(name, form, noise):
-    """d loglik / d (R scale) equals the central finite difference in float64; in float32 the
-    jitted, vmapped value and gradient follow the float64 ones."""
-    filt = POINT_SETS[name](form=form, noise=noise)
-    value_and_grad = jax.jit(jax.value_and_grad(loglik_of_R_scale(filt, *pendulum())))
-    h = 1e-5
-    fd = (value_and_grad(1.0 + h)[0] - value_and_grad(1.0 - h)[0]) / (2 * h)
-    np.testing.assert_allclose(value_and_grad(1.0)[1], fd, rtol=1e-6)
-
-    loss32 = loglik_of_R_scale(filt, *pendulum(jnp.float32))
-    scales = jnp.array([0.5, 1.0, 2.0], jnp.float32)
-    values, grads = jax.jit(jax.vmap(jax.value_and_grad(loss32)))(scales)
-    assert values.dtype == grads.dtype == jnp.float32
-    for scale, value, grad in zip(scales, values, grads, strict=True):
-        value64, grad64 = value_and_grad(float(scale))
-        np.testing.assert_allclose(value, value64, rtol=1e-4)
-        np.testing.assert_allclose(grad, grad64, rtol=1e-2, atol=1e-2)
+    """Finite-difference gradient in float64; float32 under jit and vmap follows float64."""
+    check_grad_float64_and_float32(POINT_SETS[name](form=form, noise=noise), pendulum)
 
 
 @pytest.mark.parametrize("name", ["UKF-alpha0.5", "GHKF3"])
