@@ -24,6 +24,8 @@ def test_quick_study_writes_the_summary(tmp_path):
             assert set(F) >= {"rmse", "param_error", "diverged_runs", "runs", "all", "nis"}
             assert F["runs"] == 3 and set(F["rmse"]) == set(svd_ekf.KINEMATIC_STATES)
             assert F["rmse"]["theta"] < 0.5  # deg: the filters track the attitude
+    own = summary["own_model_simulation"]["elevator_10hz_float64"]["ekf"]
+    assert own["runs"] == 3 and own["rmse"]["theta"] < 0.5 and own["all"]["expected"] == 23
     if data is None:
         assert "real_data" not in summary and "flt_data.zip" in summary["real_data_note"]
     else:
