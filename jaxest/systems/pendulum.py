@@ -1,5 +1,6 @@
 """A damped pendulum with three sensors: the worked example of guaranteed fault detection and
-isolation with m = 3 (docs/papers/smf.md, notebooks/02_smf_fault_diagnosis.ipynb).
+isolation with m = 3 (docs/papers/smf.md, Detection and isolation; the three-sensor section of
+notebooks/02_smf_fault_diagnosis.ipynb).
 
 State x = (angle, rate), Euler-discretised at DT:
 
