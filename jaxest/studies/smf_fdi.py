@@ -11,6 +11,12 @@ Carlo for ``SEEDS`` consecutive seeds and reports their spread.
 EKF + chi-square baseline: Q, R are the variances of the uniform noise (w^2/3, the primary rule)
 or (w/3)^2 (the box read as +-3 sigma); the test alarms when the normalised innovation squared
 exceeds its chi-square(2) quantile at significance ``SIGNIFICANCE`` per step.
+
+The bank helpers work for any number m of sensors and any system: :func:`filter_bank` (the
+distinct filters of detection and both isolation methods), :func:`run_bank`,
+:func:`fdi_scores`, and for a Monte Carlo of one fault :func:`bank_monte_carlo_function` and
+:func:`bank_rates` (the three-sensor example of :mod:`jaxest.systems.pendulum`); the paper's
+study uses ``filter_bank(2)``.
 """
 
 from __future__ import annotations
