@@ -30,6 +30,8 @@ def test_filter_bank_for_two_and_three_sensors():
             smf_fdi.filter_bank(bad)
     with pytest.raises(ValueError, match="^sensor:"):
         pendulum.sensor_bias(0.03, sensor=3)
+    with pytest.raises(ValueError, match="^faulty:"):
+        smf_fdi.isolation_score(np.zeros((1, 7, 4), bool), three, 1, faulty=3, fault_start=2)
 
 
 def test_three_sensor_pendulum_monte_carlo():

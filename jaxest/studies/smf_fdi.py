@@ -114,6 +114,9 @@ def isolation_score(
     flags ``inconsistent`` (runs, F, T), with the fault on sensor ``faulty`` (0-based) from step
     ``fault_start``: a decision naming the faulty sensor is an alarm, one naming another sensor a
     false alarm. ``reading``: method 2's (:func:`~jaxest.setmembership.fdi.isolation_decisions`)."""
+    m = bank.masks.shape[-1]
+    if not 0 <= faulty < m:
+        raise ValueError(f"faulty: expected a sensor index in [0, {m}), got {faulty}")
     bank_flags = np.asarray(inconsistent)[:, bank.isolation[method]]
     decisions = np.asarray(fdi.isolation_decisions(bank_flags, method, reading))  # (runs, T, m)
     others = np.delete(decisions, faulty, axis=-1)
@@ -179,7 +182,6 @@ def bank_rates(inconsistent, bank: FilterBank, faulty: int, fault_start: int) ->
 #: the paper's two sensors: the detection filter and the isolation filters (sensor 1 only,
 #: sensor 2 only), which serve both methods
 BANK = filter_bank(2)
-FILTER_MASKS, FILTER_NAMES = BANK.masks, BANK.names
 PAPER = {
     "detection": {
         "0": {"missed_rate": 0.755, "min_delay": 0, "max_delay": 1, "mean_delay": 0.02},
@@ -316,7 +318,7 @@ def containment_stress(seed: int, quick: bool) -> dict:
             "steps_outside": int(outside.sum()),
             "unflagged_not_positive_definite": int(not_pd.sum()),
             "unbounded_rate_by_filter": {
-                name: float(unbounded[:, i].mean()) for i, name in enumerate(FILTER_NAMES)
+                name: float(unbounded[:, i].mean()) for i, name in enumerate(BANK.names)
             },
             "wall_seconds": time.perf_counter() - started,
         }
@@ -348,14 +350,14 @@ def summarise(inconsistent, contains, unbounded, ekf_alarms) -> dict:
     }
     out["containment_rate"] = float(np.mean(contains[:, 0]))
     out["containment_rate_by_filter"] = {
-        name: float(np.mean(contains[:, 0, i])) for i, name in enumerate(FILTER_NAMES)
+        name: float(np.mean(contains[:, 0, i])) for i, name in enumerate(BANK.names)
     }
     out["fault_free_inconsistency_rate"] = float(np.mean(np.any(inconsistent[:, 0], axis=-1)))
     unb = np.asarray(unbounded)[:, 0]  # (runs, F, T)
     out["unbounded_rate_by_filter"] = {
-        name: float(np.mean(np.any(unb[:, i], axis=-1))) for i, name in enumerate(FILTER_NAMES)
+        name: float(np.mean(np.any(unb[:, i], axis=-1))) for i, name in enumerate(BANK.names)
     }
-    sensor2_only = unb[:, FILTER_NAMES.index("sensor 2")]
+    sensor2_only = unb[:, BANK.names.index("sensor 2")]
     first = np.where(np.any(sensor2_only, axis=-1), np.argmax(sensor2_only, axis=-1) + 1, -1)
     out["sensor2_only_unbounded_from_step"] = {
         "min": int(first[first > 0].min()) if np.any(first > 0) else None,
