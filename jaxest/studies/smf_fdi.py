@@ -11,12 +11,19 @@ Carlo for ``SEEDS`` consecutive seeds and reports their spread.
 EKF + chi-square baseline: Q, R are the variances of the uniform noise (w^2/3, the primary rule)
 or (w/3)^2 (the box read as +-3 sigma); the test alarms when the normalised innovation squared
 exceeds its chi-square(2) quantile at significance ``SIGNIFICANCE`` per step.
+
+The bank helpers work for any number m of sensors and any system: :func:`filter_bank` (the
+distinct filters of detection and both isolation methods), :func:`run_bank`,
+:func:`fdi_scores`, and for a Monte Carlo of one fault :func:`bank_monte_carlo_function` and
+:func:`bank_rates` (the three-sensor example of :mod:`jaxest.systems.pendulum`); the paper's
+study uses ``filter_bank(2)``.
 """
 
 from __future__ import annotations
 
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,7 +38,7 @@ from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.setmembership import fdi
 from jaxest.setmembership.ellipsoid import is_positive_definite
-from jaxest.setmembership.smf import SetMembershipFilter
+from jaxest.setmembership.smf import SetMembershipFilter, SMFResult
 from jaxest.systems import duffing
 
 DESCRIPTION = (
@@ -43,10 +50,138 @@ DEFAULT_RUNS = 200
 SEEDS = 5
 SIGNIFICANCE = 0.01
 VARIANCE_RULES = {"w^2/3": lambda w: w**2 / 3, "(w/3)^2": lambda w: (w / 3) ** 2}
-#: the detection filter (every sensor) and the isolation filters (sensor 1 only, sensor 2 only);
-#: method 1's filter i and method 2's filter j != i are the same filter when m = 2
-FILTER_MASKS = np.array([[True, True], [True, False], [False, True]])
-FILTER_NAMES = ("all sensors", "sensor 1", "sensor 2")
+
+
+class FilterBank(NamedTuple):
+    """The distinct SMFs of guaranteed FDI with m sensors: ``masks[f]`` the sensors filter f
+    sees, ``names[f]`` a label, ``detection`` the row of the detection filter (every sensor) and
+    ``isolation[method]`` the rows (m,) of that method's bank (filter i of method 1 sees sensor i
+    only, of method 2 every sensor but i; :func:`jaxest.setmembership.fdi.bank_masks`)."""
+
+    masks: np.ndarray
+    names: tuple[str, ...]
+    detection: int
+    isolation: dict[int, np.ndarray]
+
+
+def _filter_name(mask: np.ndarray) -> str:
+    """The label of a bank's filter: all sensors, sensor i or all but sensor i (1-based)."""
+    if mask.all():
+        return "all sensors"
+    if mask.sum() == 1:
+        return f"sensor {np.argmax(mask) + 1}"
+    return f"all but sensor {np.argmin(mask) + 1}"
+
+
+def filter_bank(m: int) -> FilterBank:
+    """The detection filter and both isolation banks for ``m`` >= 2 sensors, each distinct filter
+    once: 1 + 2m filters, or 3 when m = 2, where method 2's filter i (every sensor but i) is
+    method 1's filter of the other sensor."""
+    if not isinstance(m, int | np.integer) or m < 2:
+        raise ValueError(f"m: expected an integer number of sensors >= 2, got {m!r}")
+    masks = [np.ones(m, bool)]
+    isolation = {}
+    for method in (1, 2):
+        rows = []
+        for mask in fdi.bank_masks(m, method):
+            found = [f for f, seen in enumerate(masks) if np.array_equal(seen, mask)]
+            if not found:
+                masks.append(mask)
+            rows.append(found[0] if found else len(masks) - 1)
+        isolation[method] = np.asarray(rows)
+    masks = np.stack(masks)
+    return FilterBank(masks, tuple(map(_filter_name, masks)), 0, isolation)
+
+
+def run_bank(model, prior, ys: jnp.ndarray, masks: np.ndarray) -> SMFResult:
+    """The SMF over one run ``ys`` (T, m) for every row of ``masks`` (F, m), fed only the
+    sensors of that row (:func:`~jaxest.setmembership.fdi.sensor_subset`); one ``vmap``, so the
+    result's arrays gain a leading filter axis (F, T, ...)."""
+    smf = SetMembershipFilter()
+    one = lambda mask: run_estimator(smf, model, fdi.sensor_subset(ys, mask), prior=prior)
+    return jax.vmap(one)(jnp.asarray(masks))
+
+
+def bank_contains(result: SMFResult, states: jnp.ndarray) -> jnp.ndarray:
+    """(F, T): whether each filter's set of a :func:`run_bank` result holds ``states`` (T, n)."""
+    return jax.vmap(lambda one: one.contains(states))(result)
+
+
+def isolation_score(
+    inconsistent, bank: FilterBank, method: int, faulty: int, fault_start: int, reading="same_step"
+) -> dict:
+    """:func:`~jaxest.setmembership.fdi.score` of one isolation method over runs, from the bank's
+    flags ``inconsistent`` (runs, F, T), with the fault on sensor ``faulty`` (0-based) from step
+    ``fault_start``: a decision naming the faulty sensor is an alarm, one naming another sensor a
+    false alarm. ``reading``: method 2's (:func:`~jaxest.setmembership.fdi.isolation_decisions`)."""
+    m = bank.masks.shape[-1]
+    if not 0 <= faulty < m:
+        raise ValueError(f"faulty: expected a sensor index in [0, {m}), got {faulty}")
+    bank_flags = np.asarray(inconsistent)[:, bank.isolation[method]]
+    decisions = np.asarray(fdi.isolation_decisions(bank_flags, method, reading))  # (runs, T, m)
+    others = np.delete(decisions, faulty, axis=-1)
+    return fdi.score(decisions[..., faulty], fault_start, wrong=np.any(others, axis=-1))
+
+
+def fdi_scores(inconsistent, bank: FilterBank, faulty: int, fault_start: int, reading="same_step"):
+    """Scores of detection and both isolation methods (method 2 in ``reading``) over runs, from
+    the flags ``inconsistent`` (runs, F, T) of every filter of ``bank``."""
+    return {
+        "detection": fdi.score(np.asarray(inconsistent)[:, bank.detection], fault_start),
+        **{
+            f"isolation_method{method}": isolation_score(
+                inconsistent, bank, method, faulty, fault_start, reading
+            )
+            for method in (1, 2)
+        },
+    }
+
+
+def bank_monte_carlo_function(model, prior, simulate, fault_bias, bank: FilterBank):
+    """A jitted ``keys -> (inconsistent, contains)``, each (runs, 2, F, T): every filter of
+    ``bank`` over a fault-free run (scenario 0) and the same run with ``fault_bias`` (T, m) added
+    to the measurements (scenario 1), the same noise draws in both; ``simulate(key, bias) ->
+    (states, ys)``, ``prior`` the set at the first measurement. Runs are vmapped in batches
+    (:func:`batched_over_runs`)."""
+    biases = jnp.stack([jnp.zeros_like(fault_bias), fault_bias])
+
+    def one_run(key):
+        def scenario(bias):
+            states, ys = simulate(key, bias)
+            result = run_bank(model, prior, ys, bank.masks)
+            return result.inconsistent, bank_contains(result, states)
+
+        return jax.vmap(scenario)(biases)
+
+    return batched_over_runs(one_run)
+
+
+def bank_rates(inconsistent, bank: FilterBank, faulty: int, fault_start: int) -> dict:
+    """Per method (method 2 in both readings), from the flags (runs, 2, F, T) of
+    :func:`bank_monte_carlo_function`: ``rate``, the share of faulty runs where the fault was
+    detected (the faulty sensor isolated) in [fault_start, T]; ``false_alarm_rate``, of faulty
+    runs with an alarm before the fault or naming a healthy sensor; ``fault_free_alarm_rate``, of
+    fault-free runs with any alarm; ``mean_delay`` in steps."""
+    inconsistent = np.asarray(inconsistent)
+    never = inconsistent.shape[-1] + 1  # on fault-free runs every alarm is a false alarm
+    out = {}
+    for reading in ("same_step", "by_step"):
+        faulty_runs = fdi_scores(inconsistent[:, 1], bank, faulty, fault_start, reading)
+        fault_free = fdi_scores(inconsistent[:, 0], bank, faulty, never, reading)
+        for key, scores in faulty_runs.items():
+            name = f"{key}_{reading}" if key == "isolation_method2" else key
+            out[name] = {
+                "rate": 1.0 - scores["missed_rate"],
+                "false_alarm_rate": scores["false_alarm_rate"],
+                "fault_free_alarm_rate": fault_free[key]["false_alarm_rate"],
+                "mean_delay": scores["mean_delay"],
+            }
+    return out
+
+
+#: the paper's two sensors: the detection filter and the isolation filters (sensor 1 only,
+#: sensor 2 only), which serve both methods
+BANK = filter_bank(2)
 PAPER = {
     "detection": {
         "0": {"missed_rate": 0.755, "min_delay": 0, "max_delay": 1, "mean_delay": 0.02},
@@ -69,15 +204,15 @@ def first_prior(closed_form_bound: bool = False):
 
 
 def scenario_biases() -> jnp.ndarray:
-    """(1 + len(LEVELS), N, 2): the fault-free scenario, then L = 0, 1, 2."""
-    fault_free = jnp.zeros((duffing.NUM_STEPS, 2))
-    return jnp.stack([fault_free, *[duffing.sensor_bias(L) for L in LEVELS]])
+    """(1 + len(LEVELS), N, m): the fault-free scenario, then L = 0, 1, 2."""
+    faults = [duffing.sensor_bias(L) for L in LEVELS]
+    return jnp.stack([jnp.zeros_like(faults[0]), *faults])
 
 
 def simulate_run(key, L):
     """Truth and measurements of one run with fault level L (``None``: no fault)."""
-    bias = jnp.zeros((duffing.NUM_STEPS, 2)) if L is None else duffing.sensor_bias(L)
-    return duffing.simulate(key, bias)
+    bias = duffing.sensor_bias(0)
+    return duffing.simulate(key, jnp.zeros_like(bias) if L is None else duffing.sensor_bias(L))
 
 
 def ekf_model(rule: str) -> NonlinearGaussian:
@@ -95,19 +230,15 @@ def ekf_prior(model: NonlinearGaussian) -> Gaussian:
 
 def _one_run(key, biases, closed_form_bound=False):
     """Every scenario and filter of one run: SMF flags (S, F, T) and EKF alarms (S, rules, T)."""
-    smf, model = SetMembershipFilter(), duffing.model(closed_form_bound)
+    model = duffing.model(closed_form_bound)
     prior = first_prior(closed_form_bound)
     threshold = fdi.chi_square_threshold(2, SIGNIFICANCE)
     ekfs = [(ekf_model(rule), ekf_prior(ekf_model(rule))) for rule in VARIANCE_RULES]
 
     def scenario(bias):
         states, ys = duffing.simulate(key, bias)
-
-        def smf_run(mask):
-            result = run_estimator(smf, model, fdi.sensor_subset(ys, mask), prior=prior)
-            return result.inconsistent, result.contains(states), result.unbounded
-
-        flags = jax.vmap(smf_run)(jnp.asarray(FILTER_MASKS))
+        bank = run_bank(model, prior, ys, BANK.masks)
+        flags = (bank.inconsistent, bank_contains(bank, states), bank.unbounded)
         alarms = []
         for ekf, ekf_init in ekfs:
             post = run_estimator(EKF(), ekf, ys, prior=ekf_init)
@@ -158,20 +289,13 @@ def containment_stress_function(noise_scale: float):
     unbounded was reported, and the UNBOUNDED flags."""
     model = duffing.model(closed_form_bound=True, noise_scale=noise_scale)
     prior = SetMembershipFilter().predict(model, duffing.prior())
-    masks = jnp.asarray(FILTER_MASKS)
 
     def one(key):
-        bias = jnp.zeros((duffing.NUM_STEPS, 2))
+        bias = jnp.zeros_like(duffing.sensor_bias(0))
         states, ys = duffing.simulate(key, bias, noise_scale=noise_scale)
-
-        def smf_run(mask):
-            result = run_estimator(
-                SetMembershipFilter(), model, fdi.sensor_subset(ys, mask), prior=prior
-            )
-            pd = jax.vmap(is_positive_definite)(result.shape)
-            return ~result.contains(states), ~pd & ~result.unbounded, result.unbounded
-
-        return jax.vmap(smf_run)(masks)
+        bank = run_bank(model, prior, ys, BANK.masks)
+        pd = jax.vmap(jax.vmap(is_positive_definite))(bank.shape)
+        return ~bank_contains(bank, states), ~pd & ~bank.unbounded, bank.unbounded
 
     return batched_over_runs(one)
 
@@ -194,7 +318,7 @@ def containment_stress(seed: int, quick: bool) -> dict:
             "steps_outside": int(outside.sum()),
             "unflagged_not_positive_definite": int(not_pd.sum()),
             "unbounded_rate_by_filter": {
-                name: float(unbounded[:, i].mean()) for i, name in enumerate(FILTER_NAMES)
+                name: float(unbounded[:, i].mean()) for i, name in enumerate(BANK.names)
             },
             "wall_seconds": time.perf_counter() - started,
         }
@@ -206,16 +330,9 @@ def summarise(inconsistent, contains, unbounded, ekf_alarms) -> dict:
     inconsistent, contains = np.asarray(inconsistent), np.asarray(contains)
     start = duffing.FAULT_START
     out = {"detection": {}, "isolation_method1": {}, "isolation_method2": {}}
-    # bank filters, indexed by FILTER_MASKS rows: method 1's filter i = sensor i only
-    bank1 = inconsistent[:, :, [1, 2], :]  # (runs, S, m, T)
-    bank2 = bank1[:, :, ::-1, :]  # method 2's filter i = every sensor but i
     for s, L in enumerate(LEVELS, start=1):
-        out["detection"][str(L)] = fdi.score(inconsistent[:, s, 0], start)
-        for method, bank in ((1, bank1), (2, bank2)):
-            decisions = np.asarray(fdi.isolation_decisions(bank[:, s], method))  # (runs, T, m)
-            out[f"isolation_method{method}"][str(L)] = fdi.score(
-                decisions[..., 0], start, wrong=decisions[..., 1]
-            )
+        for key, scores in fdi_scores(inconsistent[:, s], BANK, 0, start).items():
+            out[key][str(L)] = scores
     ekf = np.asarray(ekf_alarms)
     rules = list(VARIANCE_RULES)
     steps = np.arange(ekf.shape[-1]) + 1
@@ -233,14 +350,15 @@ def summarise(inconsistent, contains, unbounded, ekf_alarms) -> dict:
     }
     out["containment_rate"] = float(np.mean(contains[:, 0]))
     out["containment_rate_by_filter"] = {
-        name: float(np.mean(contains[:, 0, i])) for i, name in enumerate(FILTER_NAMES)
+        name: float(np.mean(contains[:, 0, i])) for i, name in enumerate(BANK.names)
     }
     out["fault_free_inconsistency_rate"] = float(np.mean(np.any(inconsistent[:, 0], axis=-1)))
     unb = np.asarray(unbounded)[:, 0]  # (runs, F, T)
     out["unbounded_rate_by_filter"] = {
-        name: float(np.mean(np.any(unb[:, i], axis=-1))) for i, name in enumerate(FILTER_NAMES)
+        name: float(np.mean(np.any(unb[:, i], axis=-1))) for i, name in enumerate(BANK.names)
     }
-    first = np.where(np.any(unb[:, 2], axis=-1), np.argmax(unb[:, 2], axis=-1) + 1, -1)
+    sensor2_only = unb[:, BANK.names.index("sensor 2")]
+    first = np.where(np.any(sensor2_only, axis=-1), np.argmax(sensor2_only, axis=-1) + 1, -1)
     out["sensor2_only_unbounded_from_step"] = {
         "min": int(first[first > 0].min()) if np.any(first > 0) else None,
         "max": int(first[first > 0].max()) if np.any(first > 0) else None,
