@@ -79,9 +79,9 @@ BIAS_AGREEMENT_NOTE = (
     "The tuned input noise (a_x, a_z far above accelerometer noise) shows unmodelled air-relative "
     "motion too, but earth-axis wind states (random walks) made only the flow-angle parameters "
     "agree, by widening their sigmas. Even on flights simulated from the filter's own discrete "
-    "model the EKF's NEES is above 23 by as much as on the simulator (the own-model rows): the formal "
-    "sigmas are somewhat too small because the EKF approximates the nonlinear model, not because "
-    "the simulator differs from it."
+    "model the EKF's NEES stays above 23 by most of what it exceeds on the simulator (the own-model "
+    "rows): the formal sigmas are too small mainly because the EKF approximates the nonlinear "
+    "model, not because the simulator differs from it."
 )
 
 
