@@ -175,3 +175,20 @@ def _tria_gram_jvp(primals, tangents):
     (X,), (dX,) = primals, tangents
     Q, L = _qr_lower(X, with_q=True)
     return L, dX @ Q
+
+
+def after(value, dependencies):
+    """``value`` (a pytree), made to depend on every array of ``dependencies`` through a zero
+    added to it, so that XLA computes ``dependencies`` first.
+
+    XLA:CPU schedules by data dependency, and two independent batched LAPACK calls above about
+    2e5 flops of batch each can run at once and deadlock jaxlib 0.10's CPU thread pool
+    (:mod:`jaxest.montecarlo`); ``lax.optimization_barrier`` does not order them. The zero is 0
+    times one entry of each dependency, set to 0 where not finite so that a NaN does not spread.
+    """
+    leaves = [a for a in jax.tree.leaves(dependencies) if a.size]
+    if not leaves:
+        return value
+    first = jnp.stack([a.ravel()[0].astype(jnp.float32) for a in leaves])
+    zero = 0 * jnp.sum(jnp.where(jnp.isfinite(first), first, 0))
+    return jax.tree.map(lambda a: a + zero.astype(a.dtype), value)

@@ -5,7 +5,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest.linalg import SMALL_FACTOR, cho_solve_lower, cholesky, solve_triangular, tria, tria_gram
+from jaxest.linalg import (
+    SMALL_FACTOR,
+    after,
+    cho_solve_lower,
+    cholesky,
+    solve_triangular,
+    tria,
+    tria_gram,
+)
 
 
 def spd(rng, n, cond=1e3):
@@ -76,3 +84,19 @@ def test_tria_gram_tangent_is_a_tangent_of_the_gram_matrix_at_any_rank():
     np.testing.assert_allclose(L, tria(jnp.asarray(X)), atol=1e-12)
     assert np.all(np.isfinite(dL))
     np.testing.assert_allclose(dL @ L.T + L @ dL.T, dX @ X.T + X @ dX.T, atol=1e-10)
+
+
+def test_after_leaves_values_and_gradients_unchanged_and_stops_nan():
+    """after(value, deps) is value (exactly, also when a dependency is NaN or infinite) and
+    differentiates as the identity in value and as zero in the dependencies."""
+    value = {"a": jnp.arange(3.0), "b": jnp.ones((2, 2), jnp.float32)}
+    deps = (jnp.asarray([jnp.nan, 1.0]), jnp.asarray([[jnp.inf]]), jnp.zeros((0,)))
+    out = jax.jit(after)(value, deps)
+    np.testing.assert_array_equal(out["a"], value["a"])
+    assert out["b"].dtype == jnp.float32
+    np.testing.assert_array_equal(out["b"], value["b"])
+    grad_value, grad_dep = jax.grad(lambda v, d: jnp.sum(after(v, d) ** 2), argnums=(0, 1))(
+        jnp.arange(3.0), jnp.asarray([2.0, 5.0])
+    )
+    np.testing.assert_array_equal(grad_value, 2 * jnp.arange(3.0))
+    np.testing.assert_array_equal(grad_dep, 0.0)

@@ -3,6 +3,9 @@ Kalman filter: values, log-likelihood and its gradient, missing data, float32 at
 jit/vmap/grad, and argument errors."""
 
 import functools
+import subprocess
+import sys
+import textwrap
 
 import jax
 import jax.numpy as jnp
@@ -203,3 +206,28 @@ def test_errors_name_the_argument():
     lean = je.run(je.KalmanFilter(), plain, full, prior=prior, save=je.SaveAt(fields=("mean",)))
     with pytest.raises(ValueError, match="result"):
         je.rts_smooth(plain, lean, parallel=True)
+
+
+def test_twenty_states_square_root_filter_and_parallel_smoother_finish():
+    """n = 20 > SMALL_FACTOR: the square-root filter's batched QR and the smoother's batched
+    Cholesky are LAPACK calls that jaxlib 0.10 on CPU deadlocked when run at once (hung at the
+    first call before jaxest.linalg.after ordered them). Twenty calls in a subprocess that must
+    finish, smoothing equal to the sequential RTS smoother's."""
+    code = textwrap.dedent(
+        """
+        import jax, numpy as np
+        jax.config.update("jax_enable_x64", True)
+        import jaxest as je
+        from jaxest.studies.parallel import random_model
+        model, prior = random_model(20)
+        ys = je.simulate(model, prior, 100, jax.random.PRNGKey(0)).y
+        def smooth(m, p, y, parallel):
+            result = je.run(je.ParallelKalmanFilter(), m, y, prior=p)
+            return je.rts_smooth(m, result, parallel=parallel).mean
+        parallel = jax.jit(lambda m, p, y: smooth(m, p, y, True))
+        for _ in range(20):
+            means = jax.block_until_ready(parallel(model, prior, ys))
+        np.testing.assert_allclose(means, smooth(model, prior, ys, False), rtol=1e-9, atol=1e-12)
+        """
+    )
+    subprocess.run([sys.executable, "-c", code], timeout=240, check=True)

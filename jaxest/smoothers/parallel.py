@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
-from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
+from jaxest.linalg import after, cho_solve_lower, cholesky, symmetrize
 from jaxest.smoothers.rts import SmootherResult
 
 
@@ -64,6 +64,9 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None):
     """x(k|T), P(k|T) by the reverse associative scan of eqs (1)-(2) (a
     :class:`~jaxest.SmootherResult`); what :func:`~jaxest.rts_smooth` with ``parallel=True``
     runs."""
+    # every filter output before the smoother's batched Cholesky: otherwise it can run beside the
+    # square-root filter's batched QR of its outputs and deadlock jaxlib 0.10 on CPU (n > 8)
+    result = eqx.tree_at(lambda r: r.predicted_cov, result, after(result.predicted_cov, result))
     gains = smoother_gains(model, result, inputs)
     pred_mean, pred_cov = result.predicted_mean[1:], result.predicted_cov[1:]
     g = result.mean[:-1] - jnp.einsum("kij,kj->ki", gains, pred_mean)
