@@ -3,6 +3,7 @@
 import json
 
 import jax
+import numpy as np
 import pytest
 
 from jaxest.studies import svd_ekf
@@ -87,3 +88,29 @@ def test_nees_groups_and_band_against_numpy_and_scipy():
     np.testing.assert_allclose(
         [low, high], scipy.stats.chi2.ppf([0.025, 0.975], 2300) / 100, rtol=1e-9
     )
+
+
+def test_identifiability_finds_the_uninformed_combinations():
+    """A posterior that leaves b_h at its prior and (b_ax + b_theta)/sqrt 2 at 0.8 of its prior
+    std, and every other direction at 0.1: those two come first, with their loadings."""
+    from jaxest.systems.flight import N_KIN, PARAMETERS
+
+    rng = np.random.default_rng(0)
+    std = np.concatenate([np.ones(N_KIN), rng.uniform(0.01, 3.0, len(PARAMETERS))])
+    pair = np.zeros(len(PARAMETERS))
+    pair[[PARAMETERS.index("b_ax"), PARAMETERS.index("b_theta")]] = 1 / np.sqrt(2)
+    single = np.eye(len(PARAMETERS))[PARAMETERS.index("b_h")]
+    C = (
+        0.01 * np.eye(len(PARAMETERS))
+        + 0.63 * np.outer(pair, pair)
+        + 0.99 * np.outer(single, single)
+    )
+    P = np.eye(N_KIN + len(PARAMETERS))
+    P[N_KIN:, N_KIN:] = C * np.outer(std[N_KIN:], std[N_KIN:])
+    first, second, third = svd_ekf.identifiability(P, np.diag(std**2))
+    assert first["std_ratio"] == pytest.approx(1.0) and first["loadings"] == pytest.approx(
+        {"b_h": 1.0}
+    )
+    assert second["std_ratio"] == pytest.approx(0.8)
+    assert second["loadings"] == pytest.approx({"b_ax": 2**-0.5, "b_theta": 2**-0.5})
+    assert third["std_ratio"] == pytest.approx(0.1)

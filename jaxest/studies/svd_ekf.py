@@ -437,6 +437,32 @@ def parameter_table(result):
     return {p: {"value": float(mean[i]), "std": float(std[i])} for i, p in enumerate(PARAMETERS)}
 
 
+#: loadings below this are left out of an identifiability combination
+LOADING_SHOWN = 0.2
+
+
+def identifiability(final_cov, prior_cov, count: int = 3) -> list[dict]:
+    """The sensor-parameter combinations a record leaves least identified: the eigenvectors v of
+    C = S^-1 P_pp S^-1 (P_pp the parameters' block of the final filtered covariance, S their
+    prior standard deviations) with the largest eigenvalues. An eigenvalue is the ratio of
+    posterior to prior variance of the combination v^T S^-1 p: near 1 the record did not inform
+    it at all (e.g. b_h, which the altitude measurement cannot tell from the initial altitude).
+    Returns ``count`` combinations, each with its posterior/prior std ratio (the square root)
+    and the loadings of magnitude at least ``LOADING_SHOWN``, largest first."""
+    std = np.sqrt(np.diag(np.asarray(prior_cov, np.float64))[N_KIN:])
+    P = np.asarray(final_cov, np.float64)[N_KIN:, N_KIN:]
+    ratio, vectors = np.linalg.eigh(P / np.outer(std, std))
+    out = []
+    for i in np.argsort(ratio)[::-1][:count]:
+        v = vectors[:, i] * np.sign(vectors[np.argmax(np.abs(vectors[:, i])), i])
+        shown = [j for j in np.argsort(-np.abs(v)) if abs(v[j]) >= LOADING_SHOWN]
+        out.append({
+            "std_ratio": float(np.sqrt(max(ratio[i], 0.0))),
+            "loadings": {PARAMETERS[j]: float(v[j]) for j in shown},
+        })  # fmt: skip
+    return out
+
+
 def bias_agreement(parameters):
     """For every entry of the parameter tables and pair of maneuvers:
     |difference| / sqrt(std_a^2 + std_b^2)."""
@@ -650,10 +676,12 @@ def real_data_part(out, data_dir, quick, tune_steps, progress):  # noqa: C901
         }  # fmt: skip
         progress.advance("real-data tuning")
     params, residuals, residuals_untuned, residuals_unaligned = {}, {}, {}, {}
+    identifiable = {}
     for m, d in records.items():
         result, model, inputs = reconstruct(d, in_std, out_std)
         innov, filt, computed = residual_rms(d, result, model, inputs, settle)
         params[m] = parameter_table(result)
+        identifiable[m] = identifiability(result.cov[-1], real_prior(d).cov)
         residuals[m] = {"innovation_rms": innov, "filtered_rms": filt,
                         "diverged": bool(np.any(np.asarray(result.status) != 0))}  # fmt: skip
         r_raw, model_raw, inputs_raw = reconstruct(raw[m], in_std, out_std)
@@ -666,6 +694,7 @@ def real_data_part(out, data_dir, quick, tune_steps, progress):  # noqa: C901
         progress.advance(f"ATTAS {m}")
     report["parameters"] = params["elevator"]
     report["parameters_by_maneuver"] = params
+    report["least_identified"] = identifiable
     report["residual_rms"] = residuals["elevator"]["innovation_rms"]
     report["residuals_by_maneuver"] = residuals
     report["innovation_rms_untuned"] = residuals_untuned
@@ -733,4 +762,10 @@ def write_tables(out, summary, rows):
             agree = real["parameters_agreeing_within"]
             text += f"\nAgreeing between maneuvers within 2 sigma: {agree['2_sigma']}. "
             text += real["bias_agreement_note"] + "\n"
+        text += "\n## ATTAS: least identified parameter combinations (posterior / prior std)\n\n"
+        text += markdown_table(["maneuver", "std ratio", "combination (loadings >= 0.2)"], [
+            [m, f"{c['std_ratio']:.2f}",
+             ", ".join(f"{v:+.2f} {p}" for p, v in c["loadings"].items())]
+            for m, combos in real["least_identified"].items() for c in combos
+        ])  # fmt: skip
     (out / "tables.md").write_text(text)
