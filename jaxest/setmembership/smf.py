@@ -48,6 +48,7 @@ from jaxest.setmembership.ellipsoid import (
     contains,
     intersect_strip,
     max_condition,
+    strips_ellipsoid,
 )
 from jaxest.setmembership.interval import remainder_bound
 from jaxest.setmembership.status import SetStatus as Status
@@ -166,9 +167,14 @@ class SetMembershipFilter(AbstractEstimator):
     least positive noise half-width: once measured, the set's smallest semi-axis is of the order
     of the strip and box half-widths, so a longer axis than that means a condition number the
     arithmetic cannot carry (and a set far larger than the noise that shaped it).
+
+    With ``recover`` (the default) a filter that lost its set re-initialises from the
+    measurement strips alone at the first step where that is guaranteed (:meth:`recovery`,
+    ``Status.RECOVERED``); without it an unbounded filter stays unbounded.
     """
 
     max_radius: float | None = None
+    recover: bool = eqx.field(static=True, default=True)
     default_fields = ("center", "shape", "remainder", "measurement_remainder", "status")
 
     def init(self, model: BoundedNoiseModel, prior: Ellipsoid) -> SMFState:
@@ -230,11 +236,45 @@ class SetMembershipFilter(AbstractEstimator):
     def check(self, model, ys, inputs, prior) -> None:
         check_smf_arguments(model, ys, prior, inputs)
 
+    def recovery(self, model, center, y, u, k=0):
+        """The set the measured strips alone guarantee (eqs R1-R3, docs/papers/smf.md), for a
+        filter that lost its set; returns ``(center, shape, possible, inconsistent)``.
+
+        Guaranteed only when h is affine in x, h(x) = H x + h(0): proved by the remainder bound
+        of h (the model's own, automatic or closed-form) over the whole space being exactly
+        zero. For an h that is not affine no bound on the linearisation error holds over an
+        unbounded set, so there is no recovery. ``possible``: h affine and the observed rows
+        (non-NaN entries of y) constrain every direction (:func:`strips_ellipsoid`);
+        ``inconsistent``: besides, no state satisfies them (eq R3).
+        """
+        n = model.state_dim
+        whole_space = jnp.diag(jnp.full(n, jnp.inf, center.dtype))
+        h_c, H, bound = model.linearise(
+            model.observation, model.h_remainder, center, whole_space, u, k
+        )
+        affine = jnp.all(bound == 0)
+        observed = ~jnp.isnan(y)
+        z = jnp.where(observed, y, 0.0) - h_c + H @ center  # eq 24, exact for affine h
+        c, P, bounded, inconsistent = strips_ellipsoid(H, z, model.measurement_bound, observed)
+        return c, P, affine & bounded, affine & inconsistent
+
     def step(self, model, state: SMFState, k, y, u, key=None):
-        c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u, k)
-        empty = empty & ~state.unbounded
+        center, shape = state.center, state.shape
+        restart = jnp.zeros((), bool)
+        inconsistent = jnp.zeros((), bool)
+        if self.recover:
+            c_r, P_r, possible, inconsistent = self.recovery(model, center, y, u, k)
+            inconsistent = state.unbounded & inconsistent
+            restart = state.unbounded & possible
+            center = jnp.where(restart, c_r, center)
+            shape = jnp.where(restart, P_r, shape)
+        lost = state.unbounded & ~restart  # the predicted set is the whole space
+        c, P, empty, alpha_h = self.measurement_update(model, center, shape, y, u, k)
+        empty = (empty & ~lost) | inconsistent
         trusted, conditioned = self._trusted(model, c, P)
-        unbounded = state.unbounded | ~trusted  # flagged at the step the filtered set goes bad
+        recovered = restart & ~empty & trusted
+        # flagged at the step the filtered set goes bad; cleared at the step it is recovered
+        unbounded = (state.unbounded & ~recovered) | ~trusted
         c_next, P_next, alpha_f = self.time_update(model, c, P, u, k)
         trusted_next, conditioned_next = self._trusted(model, c_next, P_next)
         unbounded_next = unbounded | ~trusted_next
@@ -244,18 +284,19 @@ class SetMembershipFilter(AbstractEstimator):
         )
         n = P.shape[-1]
         everything = jnp.where(jnp.eye(n, dtype=bool), jnp.inf, 0.0).astype(P.dtype)
-        ill = ~state.unbounded & ~(conditioned & conditioned_next)
+        ill = ~lost & ~(conditioned & conditioned_next)
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)
             | jnp.where(unbounded, Status.UNBOUNDED, 0)
             | jnp.where(ill, Status.ILL_CONDITIONED, 0)
+            | jnp.where(recovered, Status.RECOVERED, 0)
             | check_finite_status(c)
         ).astype(jnp.int32)
         output = SMFOutput(
             center=c,
             shape=jnp.where(unbounded, everything, P),
             remainder=jnp.where(unbounded, jnp.inf, alpha_f),
-            measurement_remainder=jnp.where(state.unbounded, jnp.inf, alpha_h),
+            measurement_remainder=jnp.where(lost, jnp.inf, alpha_h),
             status=status,
             predicted_center=state.center,
             predicted_shape=jnp.where(state.unbounded, everything, state.shape),
