@@ -20,9 +20,18 @@ What happens in the two failure modes (both reported in ``status``):
   ``max_radius``, or it lost finiteness, positive definiteness or a condition number the
   arithmetic can carry (``SetStatus.ILL_CONDITIONED`` beside it), e.g. a filter that never sees
   x_1 of the Duffing system: its remainder bound grows like P_11^{3/2}. The set then contains
-  everything: the filter stops updating, never signals an empty set again, and reports a shape of
-  +inf on the diagonal, from the step whose filtered set went bad (one step later when only the
-  prediction did); the flag stays set for the rest of the run.
+  everything: the filter stops updating and reports a shape of +inf on the diagonal, from the
+  step whose filtered set went bad (one step later when only the prediction did).
+- **Recovery** (``Status.RECOVERED``, eqs R1-R3 of docs/papers/smf.md): the flag stays set until a
+  step whose observed measurement rows alone guarantee a bounded set: h affine in x (its remainder
+  bound over the whole space is exactly zero) and the rows constrain every direction (rank n,
+  condition within ``max_condition``). The strips then lie in the ellipsoid centred at the
+  weighted least-squares point (:func:`~jaxest.setmembership.ellipsoid.strips_ellipsoid`); it is
+  the filtered set of that step, and the filter runs on from it (its prediction as usual) with
+  UNBOUNDED cleared. While lost, strips that no state satisfies are an EMPTY_SET alarm;
+  otherwise a lost filter never signals an empty set. For an h that is
+  not affine no recovery is guaranteed (nothing bounds its linearisation error over an unbounded
+  set): the flag stays set for the rest of the run, as it does with ``recover=False``.
 
 A NaN entry of y_k means "no measurement from that sensor at step k" (its strip is skipped);
 the fault-isolation banks of :mod:`jaxest.setmembership.fdi` feed sensor subsets this way.
@@ -259,20 +268,18 @@ class SetMembershipFilter(AbstractEstimator):
         return c, P, affine & bounded, affine & inconsistent
 
     def step(self, model, state: SMFState, k, y, u, key=None):
-        center, shape = state.center, state.shape
+        c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u, k)
+        empty = empty & ~state.unbounded
         restart = jnp.zeros((), bool)
-        inconsistent = jnp.zeros((), bool)
-        if self.recover:
-            c_r, P_r, possible, inconsistent = self.recovery(model, center, y, u, k)
-            inconsistent = state.unbounded & inconsistent
+        if self.recover:  # a lost filter's set is the strips' alone (eq R2) where guaranteed
+            c_r, P_r, possible, inconsistent = self.recovery(model, state.center, y, u, k)
             restart = state.unbounded & possible
-            center = jnp.where(restart, c_r, center)
-            shape = jnp.where(restart, P_r, shape)
+            empty = empty | (state.unbounded & inconsistent)  # eq R3
+            c, P = jnp.where(restart, c_r, c), jnp.where(restart, P_r, P)
+            alpha_h = jnp.where(restart, 0.0, alpha_h)  # h is affine
         lost = state.unbounded & ~restart  # the predicted set is the whole space
-        c, P, empty, alpha_h = self.measurement_update(model, center, shape, y, u, k)
-        empty = (empty & ~lost) | inconsistent
         trusted, conditioned = self._trusted(model, c, P)
-        recovered = restart & ~empty & trusted
+        recovered = restart & trusted
         # flagged at the step the filtered set goes bad; cleared at the step it is recovered
         unbounded = (state.unbounded & ~recovered) | ~trusted
         c_next, P_next, alpha_f = self.time_update(model, c, P, u, k)
