@@ -2,6 +2,7 @@
 ellipsoid against brute force, the step it happens, containment over many runs, the cases where
 no recovery is guaranteed (h not affine, too few rows, inconsistent strips)."""
 
+import functools
 import itertools
 
 import jax
@@ -178,3 +179,26 @@ def test_no_recovery_without_a_guarantee(recover):
     first = np.argmax(status & Status.UNBOUNDED)
     assert OUTAGE[0] < first < OUTAGE[1] and np.all(status[first:] & Status.UNBOUNDED)
     assert not np.any(status & Status.RECOVERED)
+
+
+def test_gradients_through_a_recovery():
+    """d log det P_k / d b through the recovery step matches central differences, and before the
+    outage the recovery computation (taken or not) leaves the gradients as they were."""
+    _, ys = _simulate(jax.random.key(3), jnp.float64)
+    R = _rotation(jnp.float64)
+    steps = jnp.asarray([OUTAGE[0] - 5, OUTAGE[1] + 5, T - 1])
+
+    @functools.partial(jax.jit, static_argnums=1)
+    def log_volumes(b, recover):
+        model = BoundedNoiseModel(
+            lambda x: R @ x, lambda x: x, jnp.full(2, PROCESS), jnp.full(2, b)
+        )
+        smf = SetMembershipFilter(max_radius=MAX_RADIUS, recover=recover)
+        result = set_membership_filter(model, ys, prior=_prior(jnp.float64), estimator=smf)
+        return jnp.linalg.slogdet(result.shape[steps])[1]
+
+    grad = jax.jit(jax.jacfwd(log_volumes), static_argnums=1)
+    h = 1e-7
+    fd = (log_volumes(MEASUREMENT + h, True) - log_volumes(MEASUREMENT - h, True)) / (2 * h)
+    np.testing.assert_allclose(grad(MEASUREMENT, True), fd, rtol=1e-7)
+    assert grad(MEASUREMENT, True)[0] == grad(MEASUREMENT, False)[0]

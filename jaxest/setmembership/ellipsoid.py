@@ -11,6 +11,7 @@ divisions are guarded so that branches not taken give no NaN gradients).
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
@@ -176,7 +177,8 @@ def strips_ellipsoid(
     positive = slack > 0
     relative = n * kappa * jnp.finfo(dtype).eps
     centre_error = jnp.linalg.norm(center) * jnp.sqrt(jnp.trace(gram) / _safe(positive, slack))
-    margin = (1 + relative * (2 + centre_error)) ** 2
+    # a constant allowance for rounding: no derivative (cond and |x*| have none at isotropy, 0)
+    margin = jax.lax.stop_gradient((1 + relative * (2 + centre_error)) ** 2)
     shape = slack * margin * symmetrize(spd_solve(gram, jnp.eye(n, dtype=dtype)))
     return center, shape, spanning & positive, spanning & (slack < 0)
 
