@@ -115,6 +115,10 @@ def test_strips_ellipsoid_refuses_what_it_cannot_bound():
     c, P, bounded, empty = call([e1, e2, e1], [0.0, 0.0, 1.0], [0.1] * 3, [True, True, False])
     assert bool(bounded) and not bool(empty)
     np.testing.assert_allclose(np.diagonal(P), 2 * 0.01, rtol=1e-14)  # n b^2, the box's ellipsoid
+    with pytest.raises(ValueError, match=r"^half_widths: expected shape \(2,\)"):
+        call([e1, e2], [0.0, 0.0], [0.1] * 3, [True, True])
+    with pytest.raises(ValueError, match="^normals:"):
+        call([1.0, 0.0], [0.0], [0.1], [True])
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])

@@ -160,7 +160,12 @@ def strips_ellipsoid(
     direction and m > rho^2 (else S is empty or a single point and ``shape`` is not to be used);
     ``empty`` where they constrain every direction and m < rho^2.
     """
-    n = normals.shape[-1]
+    if jnp.ndim(normals) != 2:
+        raise ValueError(f"normals: expected an (m, n) matrix, got shape {jnp.shape(normals)}")
+    m, n = normals.shape
+    for name, array in (("values", values), ("half_widths", half_widths), ("rows", rows)):
+        if jnp.shape(array) != (m,):
+            raise ValueError(f"{name}: expected shape ({m},), one per row, got {jnp.shape(array)}")
     dtype = normals.dtype
     used = rows & (half_widths > 0)
     weights = jnp.where(used, 1.0 / _safe(used, half_widths), 0.0)
