@@ -7,6 +7,7 @@ from jaxest.setmembership.ellipsoid import (
     add_segment,
     contains,
     intersect_strip,
+    strips_ellipsoid,
 )
 from jaxest.setmembership.interval import Interval, hessian_interval, remainder_bound
 from jaxest.setmembership.smf import (
@@ -31,4 +32,5 @@ __all__ = [
     "intersect_strip",
     "remainder_bound",
     "set_membership_filter",
+    "strips_ellipsoid",
 ]

@@ -11,6 +11,7 @@ divisions are guarded so that branches not taken give no NaN gradients).
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
@@ -129,6 +130,62 @@ def _joseph(shape, normal, Ph, g, r_over_g):
     gain = Ph / _safe(g + r > 0, g + r)
     reduce = jnp.eye(n, dtype=shape.dtype) - jnp.outer(gain, normal)
     return reduce @ shape @ reduce.T + r * jnp.outer(gain, gain)
+
+
+def strips_ellipsoid(
+    normals: Float[Array, "m n"],
+    values: Float[Array, " m"],
+    half_widths: Float[Array, " m"],
+    rows: Bool[Array, " m"],
+) -> tuple[Float[Array, " n"], Float[Array, "n n"], Bool[Array, ""], Bool[Array, ""]]:
+    """An ellipsoid holding S = {x : |values_i - normals_i^T x| <= half_widths_i, i in ``rows``},
+    the strips alone (no prior set; docs/papers/smf.md, recovery, eqs R1-R3).
+
+    With D = diag(half_widths) over the m rows used, A = D^-1 H, t = D^-1 z and G = A^T A:
+    every x in S has ||A x - t||^2 <= m (each term is at most 1), and (R1)
+
+        ||A x - t||^2 = (x - x*)^T G (x - x*) + rho^2,  x* = G^-1 A^T t,  rho^2 = ||A x* - t||^2,
+
+    so S lies in E(x*, (m - rho^2) G^-1) (R2), and S is empty when m < rho^2 (R3). For m = n
+    (rho = 0) this is the least-volume ellipsoid around the parallelotope S.
+
+    The rows must constrain every direction: G positive definite with condition number at most
+    :func:`max_condition` (the limit every trusted set passes; cond(G) = cond(shape)) and every
+    half-width used positive. The shape is inflated by a
+    first-order rounding margin: the relative error n cond(G) eps of the solves (forming the
+    shape and testing a point against it) and the centre's, n cond(G) eps |x*| in units of the
+    shortest semi-axis sqrt((m - rho^2) / lambda_max(G)) (bounded through trace(G)).
+
+    Returns ``(center, shape, bounded, empty)``: ``bounded`` where the rows constrain every
+    direction and m > rho^2 (else S is empty or a single point and ``shape`` is not to be used);
+    ``empty`` where they constrain every direction and m < rho^2.
+    """
+    if jnp.ndim(normals) != 2:
+        raise ValueError(f"normals: expected an (m, n) matrix, got shape {jnp.shape(normals)}")
+    m, n = normals.shape
+    for name, array in (("values", values), ("half_widths", half_widths), ("rows", rows)):
+        if jnp.shape(array) != (m,):
+            raise ValueError(f"{name}: expected shape ({m},), one per row, got {jnp.shape(array)}")
+    dtype = normals.dtype
+    used = rows & (half_widths > 0)
+    weights = jnp.where(used, 1.0 / _safe(used, half_widths), 0.0)
+    A = weights[:, None] * normals
+    t = weights * jnp.where(used, values, 0.0)
+    gram = A.T @ A
+    kappa = condition_number(gram)
+    spanning = jnp.all(used | ~rows) & (kappa <= max_condition(dtype, n))
+    gram = jnp.where(spanning, gram, jnp.eye(n, dtype=dtype))  # a harmless stand-in otherwise
+    kappa = jnp.where(spanning, kappa, 1.0)
+    center = spd_solve(gram, A.T @ t)
+    residual = A @ center - t
+    slack = jnp.sum(rows) - residual @ residual  # m - rho^2, eq R2
+    positive = slack > 0
+    relative = n * kappa * jnp.finfo(dtype).eps
+    centre_error = jnp.linalg.norm(center) * jnp.sqrt(jnp.trace(gram) / _safe(positive, slack))
+    # a constant allowance for rounding: no derivative (cond and |x*| have none at isotropy, 0)
+    margin = jax.lax.stop_gradient((1 + relative * (2 + centre_error)) ** 2)
+    shape = slack * margin * symmetrize(spd_solve(gram, jnp.eye(n, dtype=dtype)))
+    return center, shape, spanning & positive, spanning & (slack < 0)
 
 
 def contains(

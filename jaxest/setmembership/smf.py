@@ -20,9 +20,18 @@ What happens in the two failure modes (both reported in ``status``):
   ``max_radius``, or it lost finiteness, positive definiteness or a condition number the
   arithmetic can carry (``SetStatus.ILL_CONDITIONED`` beside it), e.g. a filter that never sees
   x_1 of the Duffing system: its remainder bound grows like P_11^{3/2}. The set then contains
-  everything: the filter stops updating, never signals an empty set again, and reports a shape of
-  +inf on the diagonal, from the step whose filtered set went bad (one step later when only the
-  prediction did); the flag stays set for the rest of the run.
+  everything: the filter stops updating and reports a shape of +inf on the diagonal, from the
+  step whose filtered set went bad (one step later when only the prediction did).
+- **Recovery** (``Status.RECOVERED``, eqs R1-R3 of docs/papers/smf.md): the flag stays set until a
+  step whose observed measurement rows alone guarantee a bounded set: h affine in x (its remainder
+  bound over the whole space is exactly zero) and the rows constrain every direction (rank n,
+  condition within ``max_condition``). The strips then lie in the ellipsoid centred at the
+  weighted least-squares point (:func:`~jaxest.setmembership.ellipsoid.strips_ellipsoid`); it is
+  the filtered set of that step, and the filter runs on from it (its prediction as usual) with
+  UNBOUNDED cleared. While lost, strips that no state satisfies are an EMPTY_SET alarm;
+  otherwise a lost filter never signals an empty set. For an h that is
+  not affine no recovery is guaranteed (nothing bounds its linearisation error over an unbounded
+  set): the flag stays set for the rest of the run, as it does with ``recover=False``.
 
 A NaN entry of y_k means "no measurement from that sensor at step k" (its strip is skipped);
 the fault-isolation banks of :mod:`jaxest.setmembership.fdi` feed sensor subsets this way.
@@ -48,6 +57,7 @@ from jaxest.setmembership.ellipsoid import (
     contains,
     intersect_strip,
     max_condition,
+    strips_ellipsoid,
 )
 from jaxest.setmembership.interval import remainder_bound
 from jaxest.setmembership.status import SetStatus as Status
@@ -166,9 +176,14 @@ class SetMembershipFilter(AbstractEstimator):
     least positive noise half-width: once measured, the set's smallest semi-axis is of the order
     of the strip and box half-widths, so a longer axis than that means a condition number the
     arithmetic cannot carry (and a set far larger than the noise that shaped it).
+
+    With ``recover`` (the default) a filter that lost its set re-initialises from the
+    measurement strips alone at the first step where that is guaranteed (:meth:`recovery`,
+    ``Status.RECOVERED``); without it an unbounded filter stays unbounded.
     """
 
     max_radius: float | None = None
+    recover: bool = eqx.field(static=True, default=True)
     default_fields = ("center", "shape", "remainder", "measurement_remainder", "status")
 
     def init(self, model: BoundedNoiseModel, prior: Ellipsoid) -> SMFState:
@@ -230,11 +245,43 @@ class SetMembershipFilter(AbstractEstimator):
     def check(self, model, ys, inputs, prior) -> None:
         check_smf_arguments(model, ys, prior, inputs)
 
+    def recovery(self, model, center, y, u, k=0):
+        """The set the measured strips alone guarantee (eqs R1-R3, docs/papers/smf.md), for a
+        filter that lost its set; returns ``(center, shape, possible, inconsistent)``.
+
+        Guaranteed only when h is affine in x, h(x) = H x + h(0): proved by the remainder bound
+        of h (the model's own, automatic or closed-form) over the whole space being exactly
+        zero. For an h that is not affine no bound on the linearisation error holds over an
+        unbounded set, so there is no recovery. ``possible``: h affine and the observed rows
+        (non-NaN entries of y) constrain every direction (:func:`strips_ellipsoid`);
+        ``inconsistent``: besides, no state satisfies them (eq R3).
+        """
+        n = model.state_dim
+        whole_space = jnp.diag(jnp.full(n, jnp.inf, center.dtype))
+        h_c, H, bound = model.linearise(
+            model.observation, model.h_remainder, center, whole_space, u, k
+        )
+        affine = jnp.all(bound == 0)
+        observed = ~jnp.isnan(y)
+        z = jnp.where(observed, y, 0.0) - h_c + H @ center  # eq 24, exact for affine h
+        c, P, bounded, inconsistent = strips_ellipsoid(H, z, model.measurement_bound, observed)
+        return c, P, affine & bounded, affine & inconsistent
+
     def step(self, model, state: SMFState, k, y, u, key=None):
         c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u, k)
         empty = empty & ~state.unbounded
+        restart = jnp.zeros((), bool)
+        if self.recover:  # a lost filter's set is the strips' alone (eq R2) where guaranteed
+            c_r, P_r, possible, inconsistent = self.recovery(model, state.center, y, u, k)
+            restart = state.unbounded & possible
+            empty = empty | (state.unbounded & inconsistent)  # eq R3
+            c, P = jnp.where(restart, c_r, c), jnp.where(restart, P_r, P)
+            alpha_h = jnp.where(restart, 0.0, alpha_h)  # h is affine
+        lost = state.unbounded & ~restart  # the predicted set is the whole space
         trusted, conditioned = self._trusted(model, c, P)
-        unbounded = state.unbounded | ~trusted  # flagged at the step the filtered set goes bad
+        recovered = restart & trusted
+        # flagged at the step the filtered set goes bad; cleared at the step it is recovered
+        unbounded = (state.unbounded & ~recovered) | ~trusted
         c_next, P_next, alpha_f = self.time_update(model, c, P, u, k)
         trusted_next, conditioned_next = self._trusted(model, c_next, P_next)
         unbounded_next = unbounded | ~trusted_next
@@ -244,18 +291,19 @@ class SetMembershipFilter(AbstractEstimator):
         )
         n = P.shape[-1]
         everything = jnp.where(jnp.eye(n, dtype=bool), jnp.inf, 0.0).astype(P.dtype)
-        ill = ~state.unbounded & ~(conditioned & conditioned_next)
+        ill = ~lost & ~(conditioned & conditioned_next)
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)
             | jnp.where(unbounded, Status.UNBOUNDED, 0)
             | jnp.where(ill, Status.ILL_CONDITIONED, 0)
+            | jnp.where(recovered, Status.RECOVERED, 0)
             | check_finite_status(c)
         ).astype(jnp.int32)
         output = SMFOutput(
             center=c,
             shape=jnp.where(unbounded, everything, P),
             remainder=jnp.where(unbounded, jnp.inf, alpha_f),
-            measurement_remainder=jnp.where(state.unbounded, jnp.inf, alpha_h),
+            measurement_remainder=jnp.where(lost, jnp.inf, alpha_h),
             status=status,
             predicted_center=state.center,
             predicted_shape=jnp.where(state.unbounded, everything, state.shape),

@@ -19,4 +19,10 @@ SetStatus = Status.extend(
         "the filtered or predicted shape matrix lost definiteness or passed the condition number "
         "float arithmetic can carry (max_condition); the set is declared unbounded",
     ),
+    RECOVERED=(
+        256,
+        "the filter had lost its set (UNBOUNDED) and re-initialised at this step from the "
+        "measurement strips alone: h is affine and the observed rows constrain every direction "
+        "(not an error; the set is guaranteed again from here on)",
+    ),
 )
