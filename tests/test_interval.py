@@ -209,3 +209,20 @@ def test_reduce_sum_widens_relative_to_the_magnitude_of_the_terms():
         exact = sum(Fraction(float(t)) for t in v)
         s = iv.reduce_sum(Interval(jnp.asarray(v), jnp.asarray(v)), (0,))
         assert Fraction(float(s.lo)) <= exact <= Fraction(float(s.hi))
+
+
+def test_nan_endpoints_stay_nan_and_zero_times_infinity_is_zero():
+    """An exact zero times an unbounded interval is 0; a NaN endpoint (a failed enclosure) is not
+    turned into 0, so a remainder bound built on it is NaN, not a silently zero half-width."""
+    unbounded = iv.Interval(jnp.asarray(-jnp.inf), jnp.asarray(jnp.inf))
+    zero = iv.mul(iv.Interval(jnp.asarray(0.0), jnp.asarray(0.0)), unbounded)
+    assert -1e-300 < float(zero.lo) <= 0.0 <= float(zero.hi) < 1e-300  # 0, rounded outward
+    failed = iv.mul(iv.Interval(jnp.asarray(jnp.nan), jnp.asarray(1.0)), iv.lift(jnp.asarray(2.0)))
+    assert np.isnan(float(failed.lo))
+    alpha = iv.remainder_bound(
+        lambda x, a: a * x**2, jnp.zeros(1), jnp.eye(1), jnp.asarray(jnp.nan)
+    )
+    assert np.all(np.isnan(alpha))
+    np.testing.assert_array_equal(
+        iv.remainder_bound(lambda x: 3.0 * x + 1.0, jnp.zeros(1), jnp.eye(1)), 0.0
+    )

@@ -122,9 +122,11 @@ def sub(a, b) -> Interval:
 
 def mul(a, b) -> Interval:
     a, b = lift(a), lift(b)
-    products = [a.lo * b.lo, a.lo * b.hi, a.hi * b.lo, a.hi * b.hi]
-    # 0 * inf is NaN; the product is 0 there (an unbounded factor times an exact zero)
-    products = [jnp.where(jnp.isnan(p), 0.0, p) for p in products]
+    pairs = [(a.lo, b.lo), (a.lo, b.hi), (a.hi, b.lo), (a.hi, b.hi)]
+    # 0 * inf is NaN; the product is 0 there (an exact zero times an unbounded factor). Any other
+    # NaN (a NaN endpoint: the enclosure failed) stays NaN and shows in the filter's status.
+    zero_times_inf = lambda x, y: ((x == 0) & jnp.isinf(y)) | (jnp.isinf(x) & (y == 0))
+    products = [jnp.where(zero_times_inf(x, y), 0.0, x * y) for x, y in pairs]
     lo = jnp.minimum(jnp.minimum(products[0], products[1]), jnp.minimum(products[2], products[3]))
     hi = jnp.maximum(jnp.maximum(products[0], products[1]), jnp.maximum(products[2], products[3]))
     return _widen(lo, hi, 1)
@@ -473,4 +475,4 @@ def remainder_bound(
     products = Interval(jnp.where(diagonal, 0.0, -rr), rr)
     quadratic = reduce_sum(mul(hess, Interval(products.lo[None], products.hi[None])), (1, 2))
     half = 0.5 * quadratic.mag()  # exact but for subnormals, which _up covers
-    return jnp.where(half > 0, _up(half), 0.0)
+    return jnp.where(half == 0, 0.0, _up(half))  # NaN (a failed enclosure) stays NaN
