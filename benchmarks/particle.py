@@ -30,7 +30,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import time
 
 import jax
 import jax.numpy as jnp
@@ -41,7 +40,7 @@ jax.config.update("jax_enable_x64", True)
 from sigma_point import PRIOR, Q, R, f, h  # noqa: E402 - the sigma-point benchmark's pendulum
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import emit_json, timed  # noqa: E402
 from jaxest.studies.parallel import device_name  # noqa: E402
 
 N, ESS_THRESHOLD = 1000, 0.5
@@ -90,20 +89,6 @@ def cuthbert_fn():
     return loglik
 
 
-def timed(fn, args, repeats=3):
-    """(compile seconds, best run seconds) of jax.jit(fn)(*args)."""
-    start = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(*args))
-    best = np.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        best = min(best, time.perf_counter() - start)
-    return compile_s, best
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -125,7 +110,7 @@ def main(argv=None):
             call_args, per, wrap = (keys, ys), steps * runs, jax.vmap
         row = {"mode": mode}
         for name, fn in fns.items():
-            compile_s, t = timed(wrap(fn), call_args)
+            compile_s, t = timed(wrap(fn), call_args, repeats=3)
             row[f"{name}_us_per_step"] = 1e6 * t / per
             row[f"{name}_compile_s"] = compile_s
         row["ratio"] = row["jaxest_us_per_step"] / row["cuthbert_us_per_step"]
