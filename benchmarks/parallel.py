@@ -20,8 +20,8 @@ import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
 
-from jaxest.report import emit_json  # noqa: E402
-from jaxest.studies.parallel import device_name, timing  # noqa: E402
+from jaxest.report import device_name, emit_json  # noqa: E402
+from jaxest.studies.parallel import timing  # noqa: E402
 
 
 def main(argv=None):

@@ -40,8 +40,7 @@ jax.config.update("jax_enable_x64", True)
 from sigma_point import PRIOR, Q, R, f, h  # noqa: E402 - the sigma-point benchmark's pendulum
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json, timed  # noqa: E402
-from jaxest.studies.parallel import device_name  # noqa: E402
+from jaxest.report import device_name, emit_json, timed  # noqa: E402
 
 N, ESS_THRESHOLD = 1000, 0.5
 MODEL = je.NonlinearGaussian(f, h, Q, R)
@@ -110,7 +109,7 @@ def main(argv=None):
             call_args, per, wrap = (keys, ys), steps * runs, jax.vmap
         row = {"mode": mode}
         for name, fn in fns.items():
-            compile_s, t = timed(wrap(fn), call_args, repeats=3)
+            compile_s, t, _ = timed(wrap(fn), call_args, repeats=3)
             row[f"{name}_us_per_step"] = 1e6 * t / per
             row[f"{name}_compile_s"] = compile_s
         row["ratio"] = row["jaxest_us_per_step"] / row["cuthbert_us_per_step"]

@@ -105,9 +105,9 @@ def main(argv=None):
             call_args, per, wrap = (jnp.asarray(1.0), ys[0]), args.steps, lambda fn: fn
         else:
             call_args, per, wrap = (scales, ys), args.steps * args.runs, jax.vmap
-        _, t_dynamax = timed(wrap(theirs), call_args)
+        _, t_dynamax, _ = timed(wrap(theirs), call_args)
         for name, filt in FILTERS.items():
-            compile_s, t = timed(wrap(jaxest_fn(filt)), call_args)
+            compile_s, t, _ = timed(wrap(jaxest_fn(filt)), call_args)
             rows.append(
                 {
                     "filter": name,

@@ -120,7 +120,10 @@ def main(argv=None):
                 else:
                     fns = [jax.vmap(fn) for fn in fns]
                     call_args, per = (scales, ys), args.steps * args.runs
-                (c_ours, t_ours), (_, t_theirs) = timed(fns[0], call_args), timed(fns[1], call_args)
+                (c_ours, t_ours, _), (_, t_theirs, _) = (
+                    timed(fns[0], call_args),
+                    timed(fns[1], call_args),
+                )
                 rows.append(
                     {
                         "problem": name,

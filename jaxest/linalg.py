@@ -167,7 +167,7 @@ def tria_gram(X):
     """:func:`tria` (p >= n) with the tangent dL = dX Q (X^T = Q R, L = R^T = X Q): a tangent of
     L L^T whatever the rank of X (QR's own derivative needs R invertible), but not lower
     triangular, so only for factors that enter through L L^T."""
-    return _qr_lower(X, with_q=False)[1]
+    return tria(X)
 
 
 @tria_gram.defjvp

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import platform
 import time
 from pathlib import Path
 
@@ -52,16 +54,25 @@ def emit_json(data, path=None) -> str:
     return text
 
 
-def timed(fn, args, repeats: int = 5) -> tuple[float, float]:
-    """(compile seconds, best run seconds) of ``jax.jit(fn)(*args)``: compiled ahead of time,
-    run once to warm up, then the fastest of ``repeats`` runs (the benchmarks' per-step times)."""
+def timed(fn, args, repeats: int = 5) -> tuple[float, float, object]:
+    """(compile seconds, best run seconds, output) of ``jax.jit(fn)(*args)``: compiled ahead of
+    time, run once to warm up (its output is returned), then the fastest of ``repeats`` runs (the
+    benchmarks' per-step times)."""
     start = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - start
-    jax.block_until_ready(compiled(*args))
+    output = jax.block_until_ready(compiled(*args))
     best = math.inf
     for _ in range(repeats):
         start = time.perf_counter()
         jax.block_until_ready(compiled(*args))
         best = min(best, time.perf_counter() - start)
-    return compile_s, best
+    return compile_s, best, output
+
+
+def device_name() -> str:
+    """The first device, e.g. ``gpu: NVIDIA H100`` or ``cpu: x86_64, 2 cores``."""
+    device = jax.devices()[0]
+    if device.platform == "cpu":
+        return f"cpu: {platform.machine()}, {os.cpu_count()} cores"
+    return f"{device.platform}: {device.device_kind}"

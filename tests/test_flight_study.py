@@ -42,7 +42,6 @@ def test_delay_estimate_recovers_a_simulated_vane_lag():
     """A simulated 25 Hz elevator maneuver whose alpha vane lags by 2 samples (0.08 s) and whose
     beta vane does not: the likelihood profile finds both delays."""
     import jax.numpy as jnp
-    import numpy as np
 
     from jaxest.systems import flight, flight_sim as sim
 
@@ -67,7 +66,6 @@ def test_delay_estimate_recovers_a_simulated_vane_lag():
 def test_nees_groups_and_band_against_numpy_and_scipy():
     """Each group's NEES uses its marginal covariance (NumPy solves on the blocks); the band is
     scipy's chi-square quantiles of runs * dof, divided by runs."""
-    import numpy as np
     import scipy.stats
 
     rng = np.random.default_rng(0)

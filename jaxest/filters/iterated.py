@@ -80,18 +80,27 @@ class IteratedEKF(AbstractGaussianFilter):
 
     def update_predict(self, model, x, factor: Covariance, k, y, u):
         P = factor.matrix
+
+        def undamped_update(x_lin):  # eq 2 at x_lin, and P(k|k) with its gain
+            return joseph_update(x, P, linearised_measurement(model, x, x_lin, y, u, k))
+
         first = linearised_measurement(model, x, x, y, u, k)
-        _, _, S, S_chol, whitened = joseph_update(x, P, first)
+        x_post, P_post, S, S_chol, whitened = joseph_update(x, P, first)  # iteration 1: the EKF
         loglik = gaussian_loglik(whitened, S_chol, first.num_observed)
+        if self.damping == 0:  # each Gauss-Newton step is the undamped update itself
 
-        def iterate(_, points):
-            _, x_lin = points
-            return x_lin, self.gauss_newton_step(model, x, P, x_lin, y, u, k)
+            def iterate(_, posterior):
+                return undamped_update(posterior[0])[:2]
 
-        x_last_lin, x_post = jax.lax.fori_loop(0, self.iterations, iterate, (x, x))
-        _, P_post, _, _, _ = joseph_update(
-            x, P, linearised_measurement(model, x, x_last_lin, y, u, k)
-        )
+            x_post, P_post = jax.lax.fori_loop(0, self.iterations - 1, iterate, (x_post, P_post))
+        else:
+
+            def iterate(_, points):
+                _, x_lin = points
+                return x_lin, self.gauss_newton_step(model, x, P, x_lin, y, u, k)
+
+            x_last_lin, x_post = jax.lax.fori_loop(0, self.iterations, iterate, (x, x))
+            P_post = undamped_update(x_last_lin)[1]
         x_next, P_next = covariance_predict(model, x_post, P_post, u, k)
         status = step_status(x_next, P_next, loglik, cov=P_post)
         out = StepOutput(x, P, x_post, P_post, first.innovation, S, loglik, status)

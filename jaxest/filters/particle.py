@@ -251,14 +251,14 @@ class ParticleFilter(AbstractEstimator):
         log_increment = jnp.where(jnp.isfinite(log_increment), log_increment, -jnp.inf)
         degenerate = ~jnp.any(jnp.isfinite(log_increment))
         log_w = state.log_weights + jnp.where(degenerate, 0.0, log_increment)  # eq 1
-        loglik = jax.nn.logsumexp(log_w)  # eq 2 (the previous weights sum to one)
+        log_total = jax.nn.logsumexp(log_w)  # eq 2 (the previous weights sum to one)
         tiny = jnp.log(jnp.finfo(log_w.dtype).tiny)
-        loglik = jnp.where(degenerate, tiny, loglik)
-        log_W = log_w - jax.nn.logsumexp(log_w)
+        loglik = jnp.where(degenerate, tiny, log_total)
+        log_W = log_w - log_total
         W = jnp.exp(log_W)
         mean, cov = weighted_moments(x, W)
         ess = 1.0 / jnp.sum(W**2)
-        log_W_next, ancestors = self._resample(log_W, ess, key_resample)
+        log_W_next, ancestors = self._resample(log_W, W, ess, key_resample)
         x_next = x[ancestors]
         status = finite_status(mean, cov, loglik) | status_where(
             degenerate, ParticleStatus.WEIGHTS_DEGENERATE
@@ -282,11 +282,11 @@ class ParticleFilter(AbstractEstimator):
         x, correction = jax.vmap(one)(transition, keys)
         return x, measurement_loglik(model, x, k, y, u) + correction
 
-    def _resample(self, log_W, ess, key):
-        """Log-weights and ancestors after the ESS-triggered resampling (step 4)."""
+    def _resample(self, log_W, W, ess, key):
+        """Log-weights and ancestors after the ESS-triggered resampling (step 4); W = exp(log_W)."""
         N = self.num_particles
         resampled = ess < self.ess_threshold * N
-        drawn = resample(key, jnp.exp(log_W), self.resampling)
+        drawn = resample(key, W, self.resampling)
         ancestors = jnp.where(resampled, drawn, jnp.arange(N))
         uniform = jnp.full_like(log_W, -math.log(N))
         if self.differentiable:  # Scibior & Wood: value -log N, derivative d log W_{a_i}

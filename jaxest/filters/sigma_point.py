@@ -69,6 +69,8 @@ from jaxest.linalg import (
     cho_solve_lower,
     cholesky,
     cov_from_factor,
+    factor_psd,
+    right_svd,
     solve_triangular,
     symmetrize,
     tria,
@@ -123,9 +125,10 @@ def eigen_tangent(U, D, dP):
 
 @jax.custom_jvp
 def eigen_factor(P):
-    """U, D with P = U diag(D)^2 U^T, D descending (negative eigenvalues clipped to D = 0)."""
-    w, U = jnp.linalg.eigh(symmetrize(P))
-    return U[:, ::-1], jnp.sqrt(jnp.clip(w[::-1], 0.0))
+    """:func:`~jaxest.linalg.factor_psd` (U, D with P = U diag(D)^2 U^T, D descending, negative
+    eigenvalues clipped to D = 0) with the tangent of U and D themselves, not only of P: the
+    SVD form's sigma points depend on U diag(D)."""
+    return factor_psd(P)
 
 
 @eigen_factor.defjvp
@@ -143,12 +146,12 @@ def rows_factor(plus, minus):
     n = plus.shape[-1]
     if plus.shape[0] < n:
         plus = jnp.concatenate([plus, jnp.zeros((n - plus.shape[0], n), plus.dtype)])
-    _, s, Vt = jnp.linalg.svd(plus, full_matrices=False)
+    s, V = right_svd(plus)
     if minus.shape[0] == 0:
-        return Vt.T, s
-    c = minus @ Vt.T
+        return V, s
+    c = minus @ V
     w, E = jnp.linalg.eigh(symmetrize(jnp.diag(s**2) - c.T @ c))
-    return Vt.T @ E[:, ::-1], jnp.sqrt(jnp.clip(w[::-1], 0.0))
+    return V @ E[:, ::-1], jnp.sqrt(jnp.clip(w[::-1], 0.0))
 
 
 @rows_factor.defjvp
@@ -289,12 +292,6 @@ def _weighted_mean(W, Z):
     return jnp.asarray(W, Z.dtype) @ Z
 
 
-def _block_diag(A, B):
-    n, q = A.shape[0], B.shape[0]
-    zeros = jnp.zeros((n, q), A.dtype)
-    return jnp.block([[A, zeros], [zeros.T, B]])
-
-
 class AbstractSigmaPointFilter(AbstractGaussianFilter):
     """A sigma-point Kalman filter (module docstring, eqs 1-5). A concrete filter gives its point
     set through :meth:`point_set`; ``form`` ("covariance", "sqrt", "svd") says how P is held and
@@ -356,7 +353,6 @@ class AbstractSigmaPointFilter(AbstractGaussianFilter):
         """Eqs 1-4: x(k|k), its factor, e, S and the log-likelihood term."""
         n, m = x.shape[0], y.shape[0]
         A = form.square_root(factor)
-        observed = ~jnp.isnan(y)
         if self.noise == "augmented":
             R_sqrt = form.noise_sqrt(model.measurement_cov(k))
             xi, Wm, Wc = self._points(n + m, x.dtype)
@@ -373,10 +369,8 @@ class AbstractSigmaPointFilter(AbstractGaussianFilter):
         meas = masked_measurement(y, y_pred, (Y - y_pred).T, R)  # missing rows of dY zeroed
         dY = meas.H.T
         dX = X - _weighted_mean(Wm, X)
-        if self.noise == "augmented":  # unit variance on the missing rows only
-            noise = jnp.diag(1.0 - observed.astype(x.dtype))
-        else:
-            noise = form.noise_sqrt(meas.R)
+        # augmented: R = 0, so meas.R is the unit variance of the missing rows only
+        noise = meas.R if self.noise == "augmented" else form.noise_sqrt(meas.R)
         C = dX.T @ (jnp.asarray(Wc, x.dtype)[:, None] * dY)
         K, loglik, S = form.gain_and_loglik(
             form.combine(dY, Wc, noise), C, meas.innovation, meas.num_observed

@@ -496,15 +496,16 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
             window=excitation.empty_window(self.excitation_window, p, dtype),
         )
 
-    def forgetting_factor(self, info, window: excitation.ExcitationWindow):
+    def forgetting_factor(self, info, gramian, window_length: int):
         """lambda_k = max(lambda, 1 - mu_k): mu_k is the window's average information per step
-        relative to J (smallest eigenvalue of L_J^-1 W L_J^-T / N, J = L_J L_J^T), so the
-        information forgotten per step, (1 - lambda_k) J, never exceeds what arrives on average.
-        Treated as a constant by gradients."""
+        relative to J (smallest eigenvalue of L_J^-1 W L_J^-T / N, J = L_J L_J^T, W the window's
+        ``gramian`` over N = ``window_length`` steps), so the information forgotten per step,
+        (1 - lambda_k) J, never exceeds what arrives on average. Treated as a constant by
+        gradients."""
         if self.forgetting == 1:
             return 1.0
         L = cholesky(info)
-        rate = excitation.gramian(window) / window.increments.shape[0]
+        rate = gramian / window_length
         whitened = solve_triangular(L, solve_triangular(L, rate, lower=True).T, lower=True)
         mu = excitation.smallest_eigenvalue(jax.lax.stop_gradient(symmetrize(whitened)))
         return jnp.maximum(self.forgetting, 1 - mu)
@@ -521,13 +522,14 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
         increment = symmetrize(Omega.T @ S_inv_Omega)  # the information y_k carries about theta
         window = excitation.push(state.window, increment)
         L0 = state.prior_factor
-        level = excitation.smallest_eigenvalue(
-            jax.lax.stop_gradient(L0.T @ excitation.gramian(window) @ L0)
-        )
+        gramian = excitation.gramian(window)
+        level = excitation.smallest_eigenvalue(jax.lax.stop_gradient(L0.T @ gramian @ L0))
         not_excited = excitation.excitation_status(window, level, self.excitation_threshold)
-        lam = self.forgetting_factor(state.theta_info, window)
-        prior_info = chol_inverse(L0)
-        info = symmetrize(lam * state.theta_info + (1 - lam) * prior_info + increment)
+        info = state.theta_info + increment
+        if self.forgetting != 1:  # bounded forgetting towards the prior information J_0
+            lam = self.forgetting_factor(state.theta_info, gramian, window.increments.shape[0])
+            info = lam * state.theta_info + (1 - lam) * chol_inverse(L0) + increment
+        info = symmetrize(info)
         gain = cho_solve_lower(cholesky(info), S_inv_Omega.T)  # J^-1 Omega^T S^-1
         e = y - H @ state.x_pred
         theta = state.theta + gain @ e

@@ -98,16 +98,22 @@ class BoundedNoiseModel(eqx.Module):
         """h(x, u) as a vector of the m measurements (step ``k``)."""
         return jnp.reshape(call_with_optional(self.h, x, u, k), (self.obs_dim,))
 
-    def linearise(self, fn, custom_bound, center, shape, u, k):
-        """``(fn(c), d fn/dx (c), remainder half-widths over E(c, P))`` for ``fn`` one of
-        :meth:`transition`, :meth:`observation`."""
+    def linearise(self, fn, center, u, k):
+        """``(fn(c), d fn/dx (c))`` for ``fn`` one of :meth:`transition`, :meth:`observation`."""
         g = lambda x: fn(x, u, k)
-        value, jac = g(center), jax.jacfwd(g)(center)
+        return g(center), jax.jacfwd(g)(center)
+
+    def remainder(self, fn, custom_bound, center, shape, u, k):
+        """Half-widths of the remainder of ``fn`` linearised at c, over E(c, P) (eqs 11, 20):
+        the closed-form ``custom_bound`` if given, else the automatic interval bound."""
         if custom_bound is not None:
-            bound = custom_bound(center, shape, u)
-        else:
-            bound = remainder_bound(g, center, shape)
-        return value, jac, bound
+            return custom_bound(center, shape, u)
+        return remainder_bound(lambda x: fn(x, u, k), center, shape)
+
+
+def whole_space(n: int, dtype) -> Float[Array, "n n"]:
+    """The shape matrix reported for a set that contains everything: +inf on the diagonal."""
+    return jnp.where(jnp.eye(n, dtype=bool), jnp.inf, 0.0).astype(dtype)
 
 
 class SMFState(eqx.Module):
@@ -210,9 +216,11 @@ class SetMembershipFilter(AbstractEstimator):
         )
         return trusted, conditioned
 
-    def measurement_update(self, model, center, shape, y, u, k=0):
-        """Eqs 18-36; returns ``(center, shape, empty, remainder)``."""
-        h_c, H, alpha = model.linearise(model.observation, model.h_remainder, center, shape, u, k)
+    def measurement_update(self, model, center, shape, y, u, k, linearised):
+        """Eqs 18-36, with h(c) and its Jacobian H at c given (``linearised``); returns
+        ``(center, shape, empty, remainder)``."""
+        h_c, H = linearised
+        alpha = model.remainder(model.observation, model.h_remainder, center, shape, u, k)
         half_widths = model.measurement_bound + alpha  # eq 21
         new_center, new_shape, empty = center, shape, jnp.zeros((), bool)
         for i in range(H.shape[0]):
@@ -232,7 +240,8 @@ class SetMembershipFilter(AbstractEstimator):
 
     def time_update(self, model, center, shape, u, k=0):
         """Eqs 7-17; returns ``(center, shape, remainder)``."""
-        f_c, F, alpha = model.linearise(model.transition, model.f_remainder, center, shape, u, k)
+        f_c, F = model.linearise(model.transition, center, u, k)
+        alpha = model.remainder(model.transition, model.f_remainder, center, shape, u, k)
         shape = add_box(F @ shape @ F.T, model.process_bound + alpha)  # eqs 15-17, 12-13
         return f_c, shape, alpha
 
@@ -245,9 +254,10 @@ class SetMembershipFilter(AbstractEstimator):
     def check(self, model, ys, inputs, prior) -> None:
         check_smf_arguments(model, ys, prior, inputs)
 
-    def recovery(self, model, center, y, u, k=0):
+    def recovery(self, model, center, y, u, k, linearised):
         """The set the measured strips alone guarantee (eqs R1-R3, docs/papers/smf.md), for a
-        filter that lost its set; returns ``(center, shape, possible, inconsistent)``.
+        filter that lost its set, with h(c) and H at c given (``linearised``); returns
+        ``(center, shape, possible, inconsistent)``.
 
         Guaranteed only when h is affine in x, h(x) = H x + h(0): proved by the remainder bound
         of h (the model's own, automatic or closed-form) over the whole space being exactly
@@ -256,11 +266,9 @@ class SetMembershipFilter(AbstractEstimator):
         (non-NaN entries of y) constrain every direction (:func:`strips_ellipsoid`);
         ``inconsistent``: besides, no state satisfies them (eq R3).
         """
-        n = model.state_dim
-        whole_space = jnp.diag(jnp.full(n, jnp.inf, center.dtype))
-        h_c, H, bound = model.linearise(
-            model.observation, model.h_remainder, center, whole_space, u, k
-        )
+        h_c, H = linearised
+        everything = whole_space(model.state_dim, center.dtype)
+        bound = model.remainder(model.observation, model.h_remainder, center, everything, u, k)
         affine = jnp.all(bound == 0)
         observed = ~jnp.isnan(y)
         z = jnp.where(observed, y, 0.0) - h_c + H @ center  # eq 24, exact for affine h
@@ -268,11 +276,16 @@ class SetMembershipFilter(AbstractEstimator):
         return c, P, affine & bounded, affine & inconsistent
 
     def step(self, model, state: SMFState, k, y, u, key=None):
-        c, P, empty, alpha_h = self.measurement_update(model, state.center, state.shape, y, u, k)
+        linearised = model.linearise(model.observation, state.center, u, k)
+        c, P, empty, alpha_h = self.measurement_update(
+            model, state.center, state.shape, y, u, k, linearised
+        )
         empty = empty & ~state.unbounded
         restart = jnp.zeros((), bool)
         if self.recover:  # a lost filter's set is the strips' alone (eq R2) where guaranteed
-            c_r, P_r, possible, inconsistent = self.recovery(model, state.center, y, u, k)
+            c_r, P_r, possible, inconsistent = self.recovery(
+                model, state.center, y, u, k, linearised
+            )
             restart = state.unbounded & possible
             empty = empty | (state.unbounded & inconsistent)  # eq R3
             c, P = jnp.where(restart, c_r, c), jnp.where(restart, P_r, P)
@@ -289,8 +302,7 @@ class SetMembershipFilter(AbstractEstimator):
         new_state = SMFState(
             frozen(c_next, state.center), frozen(P_next, state.shape), unbounded_next
         )
-        n = P.shape[-1]
-        everything = jnp.where(jnp.eye(n, dtype=bool), jnp.inf, 0.0).astype(P.dtype)
+        everything = whole_space(P.shape[-1], P.dtype)
         ill = ~lost & ~(conditioned & conditioned_next)
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)

@@ -30,17 +30,20 @@ from jaxest.smoothers.rts import SmootherResult
 
 
 def smoother_gains(model, result: FilterResult, inputs=None):
-    """Eq (1)'s RTS gains E_k, k = 0..T-2 (shape (T-1, n, n)), F_k linearised at x(k|k)."""
+    """Eq (1)'s RTS gains E_k, k = 0..T-2 (shape (T-1, n, n)), F_k linearised at x(k|k).
+
+    Their batched Cholesky waits for every output of the filter: otherwise it can run beside the
+    square-root parallel filter's batched QR of its outputs and deadlock jaxlib 0.10 on CPU
+    (n > 8; :func:`~jaxest.linalg.after`)."""
     T = result.mean.shape[0]
     u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    pred_cov = after(result.predicted_cov[1:], result)
 
     def gain(k, mean, cov, pred_cov_next, u):
         _, F, _, _ = model.transition(mean, u, k)
         return cho_solve_lower(cholesky(pred_cov_next), F @ cov).T
 
-    return jax.vmap(gain)(
-        jnp.arange(T - 1), result.mean[:-1], result.cov[:-1], result.predicted_cov[1:], u_seq
-    )
+    return jax.vmap(gain)(jnp.arange(T - 1), result.mean[:-1], result.cov[:-1], pred_cov, u_seq)
 
 
 class SmootherElement(eqx.Module):
@@ -64,9 +67,6 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None):
     """x(k|T), P(k|T) by the reverse associative scan of eqs (1)-(2) (a
     :class:`~jaxest.SmootherResult`); what :func:`~jaxest.rts_smooth` with ``parallel=True``
     runs."""
-    # every filter output before the smoother's batched Cholesky: otherwise it can run beside the
-    # square-root filter's batched QR of its outputs and deadlock jaxlib 0.10 on CPU (n > 8)
-    result = eqx.tree_at(lambda r: r.predicted_cov, result, after(result.predicted_cov, result))
     gains = smoother_gains(model, result, inputs)
     pred_mean, pred_cov = result.predicted_mean[1:], result.predicted_cov[1:]
     g = result.mean[:-1] - jnp.einsum("kij,kj->ki", gains, pred_mean)

@@ -19,8 +19,6 @@
 
 from __future__ import annotations
 
-import os
-import platform
 import time
 from pathlib import Path
 
@@ -33,7 +31,7 @@ from jax.flatten_util import ravel_pytree
 
 import jaxest as je
 from jaxest.progress import Progress
-from jaxest.report import markdown_table, write_json
+from jaxest.report import device_name, markdown_table, timed, write_json
 
 DESCRIPTION = "parallel-in-time Kalman filter/smoother speed and accuracy; EM vs gradient fitting"
 
@@ -76,32 +74,17 @@ def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> l
     args = (cast(model64), cast(prior64), ys.astype(dtype))
     rows = []
     for name in methods:
-        fn = _filter_smoother(*METHODS[name])
-        start = time.perf_counter()
-        compiled = fn.lower(*args).compile()
-        compile_s = time.perf_counter() - start
-        loglik, mean, cov = jax.block_until_ready(compiled(*args))
-        runs = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            jax.block_until_ready(compiled(*args))
-            runs.append(time.perf_counter() - start)
+        compile_s, run_s, (loglik, mean, cov) = timed(
+            _filter_smoother(*METHODS[name]), args, repeats
+        )
         finite = bool(jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(cov)))
         rel = abs(float(loglik) / float(reference.loglik) - 1.0)
         rows.append({
             "n": n, "T": T, "dtype": jnp.dtype(dtype).name, "method": name,
-            "compile_s": compile_s, "run_s": min(runs), "finite": finite,
+            "compile_s": compile_s, "run_s": run_s, "finite": finite,
             "loglik_rel_diff": rel if np.isfinite(rel) else None,
         })  # fmt: skip
     return rows
-
-
-def device_name() -> str:
-    """The first device, e.g. ``gpu: NVIDIA H100`` or ``cpu: x86_64, 2 cores``."""
-    device = jax.devices()[0]
-    if device.platform == "cpu":
-        return f"cpu: {platform.machine()}, {os.cpu_count()} cores"
-    return f"{device.platform}: {device.device_kind}"
 
 
 # --- EM against gradient fitting ----------------------------------------------------------

@@ -164,19 +164,24 @@ def bank_rates(inconsistent, bank: FilterBank, faulty: int, fault_start: int) ->
     fault-free runs with any alarm; ``mean_delay`` in steps."""
     inconsistent = np.asarray(inconsistent)
     never = inconsistent.shape[-1] + 1  # on fault-free runs every alarm is a false alarm
-    out = {}
-    for reading in ("same_step", "by_step"):
-        faulty_runs = fdi_scores(inconsistent[:, 1], bank, faulty, fault_start, reading)
-        fault_free = fdi_scores(inconsistent[:, 0], bank, faulty, never, reading)
-        for key, scores in faulty_runs.items():
-            name = f"{key}_{reading}" if key == "isolation_method2" else key
-            out[name] = {
-                "rate": 1.0 - scores["missed_rate"],
-                "false_alarm_rate": scores["false_alarm_rate"],
-                "fault_free_alarm_rate": fault_free[key]["false_alarm_rate"],
-                "mean_delay": scores["mean_delay"],
-            }
-    return out
+    scores = []
+    for flags, start in ((inconsistent[:, 1], fault_start), (inconsistent[:, 0], never)):
+        by_method = fdi_scores(flags, bank, faulty, start, "same_step")
+        by_method["isolation_method2_same_step"] = by_method.pop("isolation_method2")
+        by_method["isolation_method2_by_step"] = isolation_score(
+            flags, bank, 2, faulty, start, "by_step"
+        )
+        scores.append(by_method)
+    faulty_runs, fault_free = scores
+    return {
+        key: {
+            "rate": 1.0 - f["missed_rate"],
+            "false_alarm_rate": f["false_alarm_rate"],
+            "fault_free_alarm_rate": fault_free[key]["false_alarm_rate"],
+            "mean_delay": f["mean_delay"],
+        }
+        for key, f in faulty_runs.items()
+    }
 
 
 #: the paper's two sensors: the detection filter and the isolation filters (sensor 1 only,

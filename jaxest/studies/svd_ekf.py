@@ -226,6 +226,15 @@ def summarise(metrics, common):
     }
 
 
+def table_row(condition: str, filter_name: str, F: dict) -> list:
+    """One row of the Monte Carlo table from a :func:`summarise` block (NaN where no run was
+    compared)."""
+    nees = [F[g]["nees"] if g in F else float("nan") for g in NEES_GROUPS]
+    nis = np.mean(list(F["nis"].values())) if "nis" in F else float("nan")
+    rmse = [F["rmse"][s] for s in KINEMATIC_STATES]
+    return [condition, filter_name, F["diverged_runs"], F["runs"], *nees, nis, *rmse]
+
+
 def own_model_simulation(model, batch, P0, settle, chunk, key) -> dict:
     """The EKF on flights simulated from the filter's own discrete model: x_{k+1} = f(x_k, u_k) +
     G w_k, y_k = h(x_k, u_k) + v_k with its G, Q and R, the study's measured inputs and true
@@ -578,21 +587,13 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
                     "std_ratio": ratios,
                     "observable": [p for p, r in ratios.items() if r < OBSERVABLE_RATIO],
                 }
-            for f in FILTERS:
-                F = entry[f]
-                nees = [F[g]["nees"] if g in F else float("nan") for g in NEES_GROUPS]
-                nis = np.mean(list(F["nis"].values())) if "nis" in F else float("nan")
-                tables.append([name, f, F["diverged_runs"], F["runs"], *nees, nis,
-                               *[F["rmse"][s] for s in KINEMATIC_STATES]])  # fmt: skip
+            tables += [table_row(name, f, entry[f]) for f in FILTERS]
             if (maneuver, rate, dtype_name) in own_model:
                 nees_runs[rate] = metrics["svd_ekf"]["nees_t"][common]
                 own = own_model_simulation(model, batch, P0, settle, chunk,
                                            jax.random.fold_in(cond_key, 1))  # fmt: skip
                 summary["own_model_simulation"][name] = {"ekf": own}
-                nees = [own[g]["nees"] for g in NEES_GROUPS]
-                tables.append([f"{name} (own-model simulation)", "ekf", own["diverged_runs"],
-                               own["runs"], *nees, np.mean(list(own["nis"].values())),
-                               *[own["rmse"][s] for s in KINEMATIC_STATES]])  # fmt: skip
+                tables.append(table_row(f"{name} (own-model simulation)", "ekf", own))
                 progress.advance(f"{maneuver} {rate} Hz own-model simulation")
         if nees_runs:
             nees_figure(out / "fig_nees_elevator.png", nees_runs)
