@@ -2,11 +2,8 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= results
-# JAX's persistent compilation cache, outside the clone: a second `make test` / `make reproduce`
-# reloads compiled programs instead of compiling them again (tests/conftest.py uses the same path).
-JAX_COMPILATION_CACHE_DIR ?= $(or $(XDG_CACHE_HOME),$(HOME)/.cache)/jaxest/jax
-export JAX_COMPILATION_CACHE_DIR
-export JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS ?= 0.2
+# JAX's persistent compilation cache lives outside the clone, one directory per processor
+# (jaxest/compile_cache.py): the test suite and `python -m jaxest` turn it on themselves.
 
 .PHONY: reproduce test lint format clean docs docs-check wheel-check
 

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from jaxest import studies
+from jaxest import compile_cache, studies
 from jaxest.report import write_json
 
 
@@ -58,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # studies run in float64 unless they say otherwise
+    compile_cache.enable()  # a second run reloads compiled programs
     names = list(studies.STUDIES) if "all" in args.study else args.study
     if args.runs is not None and args.runs < 1:
         raise SystemExit("--runs: must be at least 1")

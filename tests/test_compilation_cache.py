@@ -60,3 +60,16 @@ def test_entries_written_and_reused(tmp_path):
         pytest.skip(f"jaxlib rejected the cached executable on this host (known bug): {line}")
     assert warm["hits"] >= 1, log[-3000:]
     print(f"first call: cold {cold['first_call_s']:.3f} s, warm {warm['first_call_s']:.3f} s")
+
+
+def test_one_directory_per_processor(monkeypatch, tmp_path):
+    from jaxest import compile_cache
+
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    here = compile_cache.cache_dir()
+    assert here.parent == tmp_path / "jaxest" / "jax" and here == compile_cache.cache_dir()
+    monkeypatch.setattr(compile_cache, "_processor_description", lambda: "x86_64 flags: avx512f")
+    assert compile_cache.cache_dir() != here  # another instruction set, another directory
+    monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "mine"))
+    assert compile_cache.cache_dir() == tmp_path / "mine"  # the user's choice, as it is
