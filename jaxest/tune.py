@@ -1,9 +1,10 @@
 """Gradient fitting of model matrices (Q, R, P0, ...) with optax.
 
-A symmetric positive definite matrix is optimised through an unconstrained parameter:
+Each fitted matrix is optimised through an unconstrained parameter:
 
 - ``"cholesky"``: P = L L^T, L lower triangular with log-diagonal, so any real parameter is SPD;
-- ``"log_diagonal"``: P = diag(exp(theta)).
+- ``"log_diagonal"``: P = diag(exp(theta));
+- ``"unconstrained"``: the matrix itself (a transition or measurement matrix F, H).
 
 ``free`` masks choose which entries of the parameter move (the others keep their initial value),
 e.g. a diagonal-only Cholesky fit, or one variance held fixed.
@@ -20,11 +21,13 @@ import optax
 
 from jaxest._run import SaveAt, run
 
-PARAMETRISATIONS = ("cholesky", "log_diagonal")
+PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
 
 
 def to_unconstrained(P, parametrisation: str):
-    """The unconstrained parameter of SPD ``P``."""
+    """The unconstrained parameter of ``P`` (SPD unless ``"unconstrained"``)."""
+    if parametrisation == "unconstrained":
+        return P
     if parametrisation == "cholesky":
         L = jnp.linalg.cholesky(P)
         return jnp.tril(L, -1) + jnp.diag(jnp.log(jnp.diag(L)))
@@ -36,11 +39,17 @@ def to_unconstrained(P, parametrisation: str):
 
 
 def from_unconstrained(theta, parametrisation: str):
-    """The SPD matrix of an unconstrained parameter (inverse of :func:`to_unconstrained`)."""
+    """The matrix of an unconstrained parameter (inverse of :func:`to_unconstrained`)."""
+    if parametrisation == "unconstrained":
+        return theta
     if parametrisation == "cholesky":
         L = jnp.tril(theta, -1) + jnp.diag(jnp.exp(jnp.diag(theta)))
         return L @ L.T
-    return jnp.diag(jnp.exp(theta))
+    if parametrisation == "log_diagonal":
+        return jnp.diag(jnp.exp(theta))
+    raise ValueError(
+        f"parametrisation: expected one of {PARAMETRISATIONS}, got {parametrisation!r}"
+    )
 
 
 class FitResult(eqx.Module):
@@ -65,13 +74,14 @@ def fit(
     optimizer: optax.GradientTransformation | None = None,
     num_steps: int = 200,
 ):
-    """Minimise ``loss(model)`` over the SPD matrices named in ``params``.
+    """Minimise ``loss(model)`` over the matrices named in ``params``.
 
     Args:
         model: any equinox Module (a model, or a pytree holding model and prior).
         loss: ``model -> scalar``, e.g. :func:`neg_loglik` or :func:`supervised_mse`.
         params: attribute paths (``"Q"``, ``"R"``, ``"prior.cov"``...), as a sequence
-            (Cholesky parametrisation) or a dict path -> ``"cholesky"`` / ``"log_diagonal"``.
+            (Cholesky parametrisation) or a dict path -> ``"cholesky"`` / ``"log_diagonal"`` /
+            ``"unconstrained"`` (see the module docstring).
         free: optional path -> boolean mask of the unconstrained parameter's free entries
             (shape n x n for Cholesky, n for log-diagonal).
         optimizer: an optax transformation (default ``optax.adam(0.05)``); line-search
@@ -88,7 +98,9 @@ def fit(
         except AttributeError as err:
             raise ValueError(f"params: model has no attribute {path!r}") from err
         if getattr(P, "ndim", 0) != 2:
-            raise ValueError(f"params[{path!r}]: expected a constant n x n matrix to fit")
+            raise ValueError(f"params[{path!r}]: expected a constant matrix to fit")
+        if kind != "unconstrained" and P.shape[0] != P.shape[1]:
+            raise ValueError(f"params[{path!r}]: {kind} needs a square matrix, got {P.shape}")
     free = free or {}
     optimizer = optax.with_extra_args_support(optimizer or optax.adam(0.05))
     theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}

@@ -1,5 +1,6 @@
 """SPD parametrisations and gradient fitting."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,6 +32,24 @@ def scalar_problem(runs=6, T=200):
     prior = je.Gaussian(jnp.zeros(1), jnp.eye(1))
     sims = monte_carlo(lambda k: je.simulate(truth, prior, T, k), jax.random.PRNGKey(0), runs)
     return truth, prior, sims
+
+
+def test_unconstrained_transition_fit_finds_the_likelihood_maximum():
+    truth, prior, sims = scalar_problem()
+    loss = neg_loglik(KalmanFilter(), sims.y, prior=prior)
+    start = je.LinearGaussian(jnp.asarray([[0.5]]), truth.H, truth.Q, truth.R)
+    result = fit(start, loss, {"F": "unconstrained"}, optimizer=optax.lbfgs(), num_steps=30)
+    grid = jnp.linspace(0.85, 1.0, 301)
+    nll = jax.jit(jax.vmap(lambda f: loss(eqx.tree_at(lambda m: m.F, start, f[None, None]))))(grid)
+    best = float(grid[np.argmin(nll)])
+    assert abs(float(result.model.F[0, 0]) - best) <= float(grid[1] - grid[0])
+    np.testing.assert_array_equal(result.model.Q, start.Q)  # only F moved
+    with pytest.raises(ValueError, match="cholesky needs a square matrix"):
+        fit(
+            je.LinearGaussian(truth.F, jnp.ones((2, 1)), truth.Q, jnp.eye(2)),
+            loss,
+            {"H": "cholesky"},
+        )
 
 
 def test_maximum_likelihood_recovers_q_and_r_from_tenfold_error():

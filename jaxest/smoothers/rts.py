@@ -58,20 +58,29 @@ def rts_smooth(
 
 @eqx.filter_jit
 def _rts_smooth(model, result: FilterResult, inputs) -> SmootherResult:
-    T = result.mean.shape[0]
-    steps = jnp.arange(T - 1)
+    def cross_covariance(k, mean, cov, u):  # P(k|k) F_k^T
+        _, F, _, _ = model.transition(mean, u, k)
+        return cov @ F.T
+
+    return backward_pass(result, inputs, cross_covariance)
+
+
+def backward_pass(result: FilterResult, inputs, cross_covariance) -> SmootherResult:
+    """The backward pass of the module docstring with C_k = D_k P(k+1|k)^-1, where
+    D_k = ``cross_covariance(k, x(k|k), P(k|k), u_k)`` is the filter's covariance of x_k and
+    x_{k+1} given y_0..y_k (P(k|k) F_k^T here; the sigma points' in
+    :mod:`jaxest.smoothers.sigma_point_rts`)."""
+    steps = jnp.arange(result.mean.shape[0] - 1)
     u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
 
     def backward(carry, args):
         mean_next, cov_next = carry
         k, mean, cov, pred_mean_next, pred_cov_next, u = args
-        _, F, _, _ = model.transition(mean, u, k)
-        chol = cholesky(pred_cov_next)
-        gain = cho_solve_lower(chol, F @ cov).T
+        D = cross_covariance(k, mean, cov, u)
+        gain = cho_solve_lower(cholesky(pred_cov_next), D.T).T
         mean_s = mean + gain @ (mean_next - pred_mean_next)
         cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)
-        status = finite_status(mean_s, cov_s)
-        return (mean_s, cov_s), (mean_s, cov_s, status)
+        return (mean_s, cov_s), (mean_s, cov_s, finite_status(mean_s, cov_s))
 
     last = (result.mean[-1], result.cov[-1])
     args = (
@@ -83,9 +92,8 @@ def _rts_smooth(model, result: FilterResult, inputs) -> SmootherResult:
         u_seq,
     )
     _, (means, covs, status) = jax.lax.scan(backward, last, args, reverse=True)
-    last_status = finite_status(last[1])
     return SmootherResult(
         jnp.concatenate([means, last[0][None]]),
         jnp.concatenate([covs, last[1][None]]),
-        jnp.concatenate([status, last_status[None]]) | result.status,
+        jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
     )

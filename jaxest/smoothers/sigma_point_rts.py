@@ -16,14 +16,11 @@ D_k = P(k|k) F^T and this is the RTS smoother (:func:`~jaxest.rts_smooth`).
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 
-from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.filters.sigma_point import AbstractSigmaPointFilter
-from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
-from jaxest.smoothers.rts import NEEDED, SmootherResult
+from jaxest.smoothers.rts import NEEDED, SmootherResult, backward_pass
 
 
 def sigma_point_rts_smooth(
@@ -49,35 +46,13 @@ def sigma_point_rts_smooth(
 @eqx.filter_jit
 def _smooth(model, result: FilterResult, filter: AbstractSigmaPointFilter, inputs):
     form = filter.factor_form()
-    steps = jnp.arange(result.mean.shape[0] - 1)
-    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
 
-    def backward(carry, args):
-        mean_next, cov_next = carry
-        k, mean, cov, pred_mean_next, pred_cov_next, u = args
+    def cross_covariance(k, mean, cov, u):  # D_k of the module docstring
         dX, FX, Wm, Wc, _ = filter.propagate(form, model, mean, form.from_cov(cov), k, u)
         dF = FX - jnp.asarray(Wm, FX.dtype) @ FX
-        D = dX.T @ (jnp.asarray(Wc, FX.dtype)[:, None] * dF)
-        gain = cho_solve_lower(cholesky(pred_cov_next), D.T).T
-        mean_s = mean + gain @ (mean_next - pred_mean_next)
-        cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)
-        return (mean_s, cov_s), (mean_s, cov_s, finite_status(mean_s, cov_s))
+        return dX.T @ (jnp.asarray(Wc, FX.dtype)[:, None] * dF)
 
-    last = (result.mean[-1], result.cov[-1])
-    args = (
-        steps,
-        result.mean[:-1],
-        result.cov[:-1],
-        result.predicted_mean[1:],
-        result.predicted_cov[1:],
-        u_seq,
-    )
-    _, (means, covs, status) = jax.lax.scan(backward, last, args, reverse=True)
-    return SmootherResult(
-        jnp.concatenate([means, last[0][None]]),
-        jnp.concatenate([covs, last[1][None]]),
-        jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
-    )
+    return backward_pass(result, inputs, cross_covariance)
 
 
 __all__ = ["sigma_point_rts_smooth"]

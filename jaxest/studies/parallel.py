@@ -22,7 +22,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -156,10 +155,11 @@ def em_versus_gradient(T: int, em_iters: int, grad_steps: int, seed: int) -> dic
     em_loglik = float(je.run(je.KalmanFilter(), em_model, ys, prior=prior).loglik)
 
     # gradient fitting of the same parameters (L-BFGS on minus the log-likelihood)
-    loss = lambda theta: -je.run(je.KalmanFilter(), _model(theta), ys, prior=prior).loglik
+    loss = lambda model: -je.run(je.KalmanFilter(), model, ys, prior=prior).loglik
+    params = {"F": "unconstrained", "H": "unconstrained", "Q": "cholesky", "R": "cholesky"}
     t0 = time.perf_counter()
-    theta, losses = _lbfgs(loss, _free(start), grad_steps)
-    grad_model = jax.block_until_ready(_model(theta))
+    fitted = je.fit(start, loss, params, optimizer=optax.lbfgs(), num_steps=grad_steps)
+    grad_model, losses = jax.block_until_ready((fitted.model, fitted.losses))
     grad_s = time.perf_counter() - t0
     grad_loglik = float(je.run(je.KalmanFilter(), grad_model, ys, prior=prior).loglik)
 
@@ -183,24 +183,6 @@ def em_versus_gradient(T: int, em_iters: int, grad_steps: int, seed: int) -> dic
                      "finite": bool(np.all(np.isfinite(np.asarray(losses))))},
         "invariants": rows,
     }  # fmt: skip
-
-
-def _lbfgs(loss, theta0, steps: int):
-    opt = optax.lbfgs()
-    value_and_grad = optax.value_and_grad_from_state(loss)
-
-    @eqx.filter_jit
-    def solve(theta):
-        def body(carry, _):
-            theta, state = carry
-            value, grad = value_and_grad(theta, state=state)
-            updates, state = opt.update(grad, state, theta, value=value, grad=grad, value_fn=loss)
-            return (optax.apply_updates(theta, updates), state), value
-
-        (theta, _), values = jax.lax.scan(body, (theta, opt.init(theta)), None, steps)
-        return theta, values
-
-    return solve(theta0)
 
 
 def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict:
