@@ -1,52 +1,20 @@
-"""JAX's persistent compilation cache: a second process reloads what the first one compiled."""
+"""JAX's persistent compilation cache: a second process reloads what the first one compiled;
+one directory per processor; the probe's verdict decides whether the cache is used."""
 
 from __future__ import annotations
 
+import json
 import os
-import subprocess
-import sys
-import textwrap
 
 import pytest
 
-PROGRAM = textwrap.dedent(
-    """
-    import json, sys, time
-    import jax, jax.numpy as jnp
-    from jax import monitoring
-
-    jax.config.update("jax_compilation_cache_dir", sys.argv[1])
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    hits = []
-    monitoring.register_event_listener(
-        lambda name, **kw: hits.append(1) if name == "/jax/compilation_cache/cache_hits" else None
-    )
-
-    @jax.jit
-    def f(x):
-        return jax.lax.scan(lambda c, a: (jnp.sin(c) * a + c, c), x, jnp.arange(64.0))[0]
-
-    t = time.perf_counter()
-    f(jnp.ones(8)).block_until_ready()
-    print(json.dumps({"hits": len(hits), "first_call_s": time.perf_counter() - t}))
-    """
-)
-REJECTED = "is not supported"  # jaxlib 0.10: "Target machine feature ... is not supported"
+from jaxest import compile_cache
 
 
 def _run(cache_dir) -> tuple[dict, str]:
-    import json
-
-    proc = subprocess.run(
-        [sys.executable, "-c", PROGRAM, str(cache_dir)],
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env={**os.environ, "JAX_PLATFORMS": "cpu"},
-    )
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    return json.loads(proc.stdout.strip().splitlines()[-1]), proc.stderr
+    result, log, returncode = compile_cache.run_probe_program(cache_dir)
+    assert returncode == 0, log[-3000:]
+    return result, log
 
 
 def test_entries_written_and_reused(tmp_path):
@@ -55,16 +23,16 @@ def test_entries_written_and_reused(tmp_path):
     assert cold["hits"] == 0
     assert entries, "the first process wrote no cache entry"
     warm, log = _run(tmp_path)
-    if warm["hits"] == 0 and REJECTED in log:
-        line = next(ln for ln in log.splitlines() if REJECTED in ln)
+    reloaded = warm["hits"] >= 1 and compile_cache.REJECTED not in log
+    assert compile_cache.probe()["usable"] == reloaded  # the probe sees what happened here
+    if warm["hits"] == 0 and compile_cache.REJECTED in log:
+        line = next(ln for ln in log.splitlines() if compile_cache.REJECTED in ln)
         pytest.skip(f"jaxlib rejected the cached executable on this host (known bug): {line}")
     assert warm["hits"] >= 1, log[-3000:]
     print(f"first call: cold {cold['first_call_s']:.3f} s, warm {warm['first_call_s']:.3f} s")
 
 
 def test_one_directory_per_processor(monkeypatch, tmp_path):
-    from jaxest import compile_cache
-
     monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     here = compile_cache.cache_dir()
@@ -73,3 +41,15 @@ def test_one_directory_per_processor(monkeypatch, tmp_path):
     assert compile_cache.cache_dir() != here  # another instruction set, another directory
     monkeypatch.setenv("JAX_COMPILATION_CACHE_DIR", str(tmp_path / "mine"))
     assert compile_cache.cache_dir() == tmp_path / "mine"  # the user's choice, as it is
+
+
+def test_the_probe_verdict_is_kept_and_obeyed(monkeypatch, tmp_path):
+    monkeypatch.delenv("JAX_COMPILATION_CACHE_DIR", raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    calls = []
+    verdict = {"usable": False, "reason": "rejected here"}
+    monkeypatch.setattr(compile_cache, "probe", lambda: calls.append(1) or verdict)
+    assert compile_cache.enable() is None and compile_cache.enable() is None
+    assert len(calls) == 1  # the verdict is read back, not probed again
+    kept = json.loads((compile_cache.cache_dir() / compile_cache.PROBE_FILE).read_text())
+    assert kept == verdict and "JAX_COMPILATION_CACHE_DIR" not in os.environ
