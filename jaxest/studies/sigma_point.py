@@ -22,8 +22,8 @@ states of ``RMSE_STATES``), mean NEES (time average per run, then over those run
 value is n), the number of diverged runs (a status flag, a non-finite value, or a time-averaged
 NEES above ``NEES_FACTOR`` n) and the run time per step and run of the ``vmap``ped batch (compiled
 beforehand). Also: by how much the SVD form's filtered means differ from the covariance form's
-(max |difference| / prior std over the first runs, float64) -- only the choice of matrix square
-root differs -- and an ML fit of diag Q, diag R on the Duffing problem through the UKF from a
+(max |difference| / prior std over the first runs, float64) -- the same points in other
+arithmetic, so a rounding difference -- and an ML fit of diag Q, diag R on the Duffing problem through the UKF from a
 10x wrong start (L-BFGS), with standard errors from the observed Fisher information.
 
 Finally the particle filter's log-likelihood estimate against the Kalman filter's exact value on
