@@ -28,11 +28,14 @@ Forms (how P is held; each sum of weighted outer products in (2), (4), (5) is ev
   of the stacked rows sqrt(Wc_i) dX_i^T and noise square-root rows, followed by a rank-one
   Cholesky downdate for each negative weight. P is never formed; the sigma points are the same as
   the covariance form's.
-- ``"svd"``: P = U diag(D)^2 U^T, A = U D; each sum is the SVD of the same stacked rows (an
+- ``"svd"``: P = U diag(D)^2 U^T; each sum is the SVD of the same stacked rows (an
   eigendecomposition of the small matrix diag(s^2) - c c^T folds in negative weights), so no
-  Cholesky factor of an indefinite matrix is ever taken. On nonlinear models the points differ
-  from the covariance form's (U D is another square root of P than chol(P)); on linear ones the
-  filter is the same.
+  Cholesky factor of an indefinite matrix is ever taken. A is the lower-triangular factor of the
+  QR of (U D)^T, i.e. chol(P) without forming P: the points, and so the filter, are the
+  covariance form's on every model, only the arithmetic differs. (A = U D would lay the points
+  along the principal axes of P: another quadrature rule, which on bearings-only tracking puts a
+  whole slab of Gauss-Hermite points, weight 1/6, behind the sensor at once and lost runs the
+  covariance form keeps.)
 
 The SVD form is differentiated through its eigen-factors by :func:`eigen_tangent`: the exact
 derivative where eigenvalues are distinct and, where they repeat (P0 = c I), the finite tangent
@@ -249,7 +252,10 @@ class SVDForm(AbstractForm):
     factor_type = SVDFactor
 
     def square_root(self, factor):
-        return factor.U * factor.D
+        """chol(P) from the factors, as the lower-triangular factor of the QR of (U D)^T (P is
+        not formed; D = 0 gives a zero column, not a failure): the covariance form's points.
+        U D itself would put the point grid on the principal axes, a different quadrature."""
+        return tria(factor.U * factor.D)
 
     def combine(self, dev, Wc, noise_sqrt):
         plus, minus = _split_weights(Wc)

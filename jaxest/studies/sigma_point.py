@@ -22,15 +22,16 @@ states of ``RMSE_STATES``), mean NEES (time average per run, then over those run
 value is n), the number of diverged runs (a status flag, a non-finite value, or a time-averaged
 NEES above ``NEES_FACTOR`` n) and the run time per step and run of the ``vmap``ped batch (compiled
 beforehand). Also: by how much the SVD form's filtered means differ from the covariance form's
-(max |difference| / prior std over the first runs, float64) -- only the choice of matrix square
-root differs -- and an ML fit of diag Q, diag R on the Duffing problem through the UKF from a
+(max |difference| / prior std over the first runs, float64) -- the same points in other
+arithmetic, so a rounding difference -- and an ML fit of diag Q, diag R on the Duffing problem through the UKF from a
 10x wrong start (L-BFGS), with standard errors from the observed Fisher information.
 
 Finally the particle filter's log-likelihood estimate against the Kalman filter's exact value on
 a linear-Gaussian model (:func:`pf_loglik_convergence`): its bias and standard deviation over
 independent keys at 10^2 ... 10^5 particles.
 
-Default: 100 runs on (a) and (c), 10 on (b). ``--quick``: 10 runs, T = 50 on (a), no (b), and
+Default: 100 runs on every problem; the flight runs go through the filters in ``vmap``ped chunks
+of ``CHUNK`` runs (:data:`CHUNK`). ``--quick``: 10 runs, T = 50 on (a), no (b), and
 only the filters of ``QUICK_FILTERS`` (compilation, not the runs, dominates the time).
 """
 
@@ -97,6 +98,12 @@ QUICK_FILTERS = ("ekf", "svd_ekf", "ukf_covariance", "ukf_sqrt", "ukf_svd", "pf_
 #: a run diverged when its time-averaged NEES exceeds NEES_FACTOR times the state dimension
 NEES_FACTOR = 20.0
 DTYPES = ("float64", "float32")
+#: runs per ``vmap``ped batch (the runs of a problem not named here: all at once). jaxlib 0.10's
+#: CPU thread pool can deadlock when two batched LAPACK calls of more than about 2e5 flops each
+#: run at once (:mod:`jaxest.montecarlo`); 10 flight runs keep a batched 23 x 23 factorisation at
+#: 10 * 23^3 ~ 1.2e5 flops. All 100 flight runs in one ``vmap`` hung once here (every thread
+#: asleep); in chunks of 10 they cost about the same.
+CHUNK = {"flight": 10}
 
 
 class Problem(eqx.Module):
@@ -168,21 +175,25 @@ def one_run(estimator, problem: Problem, mean0, ys, inputs, truth, key):
 
 
 @eqx.filter_jit
-def batch_metrics(estimator, problem: Problem, keys):
-    def one(mean0, ys, inputs, truth, key):
+def batch_metrics(estimator, problem: Problem, keys, chunk: int | None = None):
+    """:func:`one_run` over the runs of ``problem``: one ``vmap``, or ``vmap``s of ``chunk`` runs
+    in a ``lax.map``."""
+
+    def one(args):
+        mean0, ys, inputs, truth, key = args
         return one_run(estimator, problem, mean0, ys, inputs, truth, key)
 
-    in_inputs = None if problem.inputs is None else 0
-    return jax.vmap(one, (0, 0, in_inputs, 0, 0))(
-        problem.mean0, problem.ys, problem.inputs, problem.truth, keys
-    )
+    args = (problem.mean0, problem.ys, problem.inputs, problem.truth, keys)
+    if chunk is None or chunk >= keys.shape[0]:
+        return jax.vmap(one)(args)
+    return jax.lax.map(one, args, batch_size=chunk)
 
 
-def timed_metrics(estimator, problem: Problem, keys):
+def timed_metrics(estimator, problem: Problem, keys, chunk: int | None = None):
     """Metrics of every run (NumPy) and the run time per step and run, compilation excluded."""
-    compiled = batch_metrics.lower(estimator, problem, keys).compile()
+    compiled = batch_metrics.lower(estimator, problem, keys, chunk).compile()
     start = time.perf_counter()
-    metrics = jax.block_until_ready(compiled(estimator, problem, keys))
+    metrics = jax.block_until_ready(compiled(estimator, problem, keys, chunk))
     elapsed = time.perf_counter() - start
     runs, T = problem.ys.shape[:2]
     return jax.tree.map(np.asarray, metrics), elapsed / (runs * T)
@@ -201,7 +212,7 @@ def evaluate(name, problem: Problem, seed, filters=tuple(FILTERS)) -> dict:
     raw = {}
     for fname in filters:
         if fname not in SKIPPED.get(name, {}):
-            raw[fname] = timed_metrics(FILTERS[fname], problem, keys)
+            raw[fname] = timed_metrics(FILTERS[fname], problem, keys, CHUNK.get(name))
     bad = {f: diverged(m, n) for f, (m, _) in raw.items()}
     common = ~np.any(np.stack(list(bad.values())), axis=0)
     out = {}
@@ -371,7 +382,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     runs = runs or (10 if quick else 100)
     settings = {"duffing": (runs, 50 if quick else 100), "bearings": (runs, bearings.NUM_STEPS)}
     if not quick:
-        settings["flight"] = (min(runs, 10), 60)
+        settings["flight"] = (runs, 60)
     filters = QUICK_FILTERS if quick else tuple(FILTERS)
     summary: dict = {
         "settings": {
