@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+from jax.custom_derivatives import SymbolicZero
 
 
 def symmetrize(P):
@@ -85,12 +86,42 @@ def mm(a, b):
 
     XLA's CPU dot has a fixed cost per call that dominates for, say, 4 x 4 matrices inside a
     ``scan`` (measured 4-10x slower than a fused multiply-and-sum); above ``SMALL_MATMUL``
-    multiply-adds the ordinary dot is used.
+    multiply-adds the ordinary dot is used. Below it the product is the sum over k of the
+    rank-one terms a[:, k] b[k, :], all elementwise: under ``vmap`` over many runs XLA:CPU
+    vectorises that over the whole batch, where a multiply-and-reduce over the middle axis
+    runs as scalar loops of length k (4x2 Kalman filter, 200 runs: 3.4x faster per step).
     """
     m, k, n = a.shape[-2], a.shape[-1], b.shape[-1]
     if m * k * n > SMALL_MATMUL:
         return a @ b
+    return _small_mm(a, b)
+
+
+def _reduce_mm(a, b):
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
+
+
+@jax.custom_jvp
+def _small_mm(a, b):
+    return sum(a[..., :, j, None] * b[..., None, j, :] for j in range(a.shape[-1]))
+
+
+def _small_mm_jvp(primals, tangents):
+    # The tangent as one multiply-and-reduce: its transpose (the reverse pass) is again one
+    # multiply-and-reduce per operand, where the rank-one sum's would be a pad per term
+    # (measured 1.7x slower gradients of the 4x2 Kalman filter); a zero tangent (a constant
+    # operand) adds no term.
+    (a, b), (da, db) = primals, tangents
+    out = _small_mm(a, b)
+    terms = []
+    if not isinstance(da, SymbolicZero):
+        terms.append(_reduce_mm(da, b))
+    if not isinstance(db, SymbolicZero):
+        terms.append(_reduce_mm(a, db))
+    return out, sum(terms[1:], terms[0]) if terms else jnp.zeros_like(out)
+
+
+_small_mm.defjvp(_small_mm_jvp, symbolic_zeros=True)
 
 
 def sandwich(A, P):

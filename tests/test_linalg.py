@@ -10,6 +10,7 @@ from jaxest.linalg import (
     after,
     cho_solve_lower,
     cholesky,
+    mm,
     solve_triangular,
     tria,
     tria_gram,
@@ -38,6 +39,33 @@ def test_cholesky_and_solves_match_lapack(n, dtype):
     v = solve_triangular(L[0], B[0, :, 0], lower=True)
     np.testing.assert_allclose(L[0] @ v, B[0, :, 0], rtol=tol, atol=tol)
     np.testing.assert_allclose(A @ cho_solve_lower(L, B), B, rtol=100 * tol, atol=100 * tol)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (4, 4, 4), (2, 6, 3), (8, 8, 8), (9, 8, 8)])
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_mm_matches_matmul_with_its_derivatives(shape, dtype):
+    m, k, n = shape
+    rng = np.random.default_rng(sum(shape))
+    a, da = (jnp.asarray(rng.normal(size=(5, m, k)), dtype) for _ in range(2))
+    b, db = (jnp.asarray(rng.normal(size=(5, k, n)), dtype) for _ in range(2))
+    tol = 1e-5 if dtype == jnp.float32 else 1e-13
+    ref = np.asarray(a, np.float64) @ np.asarray(b, np.float64)
+    out = jax.jit(jax.vmap(mm))(a, b)
+    assert out.dtype == dtype
+    np.testing.assert_allclose(out, ref, rtol=tol, atol=tol)
+    _, tangent = jax.jvp(mm, (a, b), (da, db))
+    np.testing.assert_allclose(tangent, da @ b + a @ db, rtol=tol, atol=tol)
+    _, tangent = jax.jvp(lambda a: mm(a, b), (a,), (da,))  # a constant operand
+    np.testing.assert_allclose(tangent, da @ b, rtol=tol, atol=tol)
+    loss = lambda a, b: jnp.sum(jnp.sin(mm(a, b)))
+    g_a, g_b = jax.jit(jax.grad(loss, argnums=(0, 1)))(a, b)
+    g = jnp.cos(a @ b)
+    np.testing.assert_allclose(g_a, g @ jnp.swapaxes(b, -1, -2), rtol=tol, atol=tol)
+    np.testing.assert_allclose(g_b, jnp.swapaxes(a, -1, -2) @ g, rtol=tol, atol=tol)
+    if dtype == jnp.float64:  # and against finite differences
+        step = 1e-6
+        fd = (loss(a + step * da, b) - loss(a - step * da, b)) / (2 * step)
+        np.testing.assert_allclose(jnp.sum(g_a * da), fd, rtol=1e-7)
 
 
 def test_not_positive_definite_gives_nan_like_lapack():
