@@ -97,6 +97,11 @@ def mm(a, b):
     return _small_mm(a, b)
 
 
+def mv(a, x):
+    """Matrix-vector product ``a @ x`` (``a`` (..., m, k), ``x`` (..., k)) as :func:`mm`."""
+    return mm(a, x[..., None])[..., 0]
+
+
 def _reduce_mm(a, b):
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
