@@ -1,9 +1,15 @@
 """jaxest against dynamax in one process, on the same problems (issue: core, acceptance).
 
-Problems: ``linear_4x2`` (n = 4, m = 2 random stable system) and ``duffing_ekf`` (the Duffing map
-of docs/papers/smf.md with Gaussian noise), T = 1000. Modes: one sequence, and 200 runs under
-``vmap`` with a different process covariance per run. Passes: forward (log-likelihood and
-filtered means) and ``value_and_grad`` of the log-likelihood with respect to the Q scale.
+Problems: ``linear_4x2`` and ``linear_6x3`` (n = 4, m = 2 and n = 6, m = 3 random stable
+systems) and ``duffing_ekf`` (the Duffing map of docs/papers/smf.md with Gaussian noise), T = 1000,
+against dynamax; ``duffing_smf``, the set-membership filter of docs/papers/smf.md on the Duffing
+protocol (T = 100 steps per run, bounded noise), against the plain NumPy loop of
+benchmarks/smf.py (dynamax has no set-membership filter): its rows carry ``reference`` and their
+``dynamax_us_per_step`` column holds the NumPy loop's time. Modes: one sequence, and 200 runs under
+``vmap`` with a different process covariance (SMF: process bound) per run. Passes: forward
+(log-likelihood and filtered means; SMF: log volume of the last set and the centres) and
+``value_and_grad`` of that scalar with respect to the Q (bound) scale. The NumPy loop has no
+gradient: the SMF's value_and_grad rows compare with its forward loop.
 Per-step time = wall time / (runs * T), best of several repeats after compilation.
 
     python benchmarks/speed.py --json out.json
@@ -12,7 +18,11 @@ Per-step time = wall time / (runs * T), best of several repeats after compilatio
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
+import math
+import time
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -22,26 +32,38 @@ jax.config.update("jax_enable_x64", True)
 
 import jaxest as je  # noqa: E402
 from jaxest.filters import KalmanFilter  # noqa: E402
+from jaxest.linalg import cholesky, logdet_chol  # noqa: E402
 from jaxest.report import emit_json, timed  # noqa: E402
+from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter  # noqa: E402
+from jaxest.studies import smf_fdi  # noqa: E402
+from jaxest.systems import duffing  # noqa: E402
 from jaxest.systems.duffing import Duffing  # noqa: E402
 
 T, RUNS = 1000, 200
+#: runs of the NumPy SMF loop timed for the per-step time of its vmap rows (a loop: the per-step
+#: time does not depend on how many)
+NUMPY_RUNS = 20
 
 
-def linear_model():
-    """The random stable 4-state / 2-measurement model (seed 0) and its prior."""
+def linear_model(n=4, m=2):
+    """A random stable n-state / m-measurement model (seed 0) and its prior; for m = 2 the
+    fixed R of the first benchmark, a random SPD one otherwise."""
     rng = np.random.default_rng(0)
-    F = 0.95 * np.linalg.qr(rng.normal(size=(4, 4)))[0]
-    H = rng.normal(size=(2, 4))
-    A = rng.normal(size=(4, 4))
-    Q = A @ A.T / 4 + 0.1 * np.eye(4)
-    R = np.array([[0.5, 0.1], [0.1, 0.3]])
+    F = 0.95 * np.linalg.qr(rng.normal(size=(n, n)))[0]
+    H = rng.normal(size=(m, n))
+    A = rng.normal(size=(n, n))
+    Q = A @ A.T / n + 0.1 * np.eye(n)
+    if m == 2:
+        R = np.array([[0.5, 0.1], [0.1, 0.3]])
+    else:
+        B = rng.normal(size=(m, m))
+        R = B @ B.T / m + 0.2 * np.eye(m)
     model = je.LinearGaussian(*(jnp.asarray(a) for a in (F, H, Q, R)))
-    return model, je.Gaussian(jnp.zeros(4), jnp.eye(4))
+    return model, je.Gaussian(jnp.zeros(n), jnp.eye(n))
 
 
-def linear_problem():
-    model, prior = linear_model()
+def linear_problem(n=4, m=2):
+    model, prior = linear_model(n, m)
 
     def jaxest_loglik(q_scale, ys):
         mdl = je.LinearGaussian(model.F, model.H, q_scale * model.Q, model.R)
@@ -50,7 +72,7 @@ def linear_problem():
 
     from dynamax.linear_gaussian_ssm import LinearGaussianSSM, lgssm_filter
 
-    params, _ = LinearGaussianSSM(4, 2).initialize(
+    params, _ = LinearGaussianSSM(n, m).initialize(
         jax.random.PRNGKey(0),
         initial_mean=prior.mean, initial_covariance=prior.cov,
         dynamics_weights=model.F, dynamics_covariance=model.Q,
@@ -87,10 +109,127 @@ def duffing_problem():
     return model, prior, jaxest_loglik, dynamax_loglik
 
 
+def smf_problem():
+    """The SMF of the set-membership study (closed-form remainder bound) on fault-free Duffing
+    data: (w_scale, ys) -> (log volume of the last set, centres), jaxest and the NumPy loop of
+    benchmarks/smf.py (the tests' independent reference)."""
+    spec = importlib.util.spec_from_file_location("smf_numpy", Path(__file__).with_name("smf.py"))
+    numpy_ref = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(numpy_ref)
+    model, prior = duffing.model(closed_form_bound=True), smf_fdi.first_prior(True)
+
+    def jaxest_volume(w_scale, ys):
+        mdl = BoundedNoiseModel(
+            model.f, model.h, w_scale * model.process_bound, model.measurement_bound,
+            model.f_remainder,
+        )  # fmt: skip
+        res = je.run(SetMembershipFilter(), mdl, ys, prior=prior)
+        return logdet_chol(cholesky(res.shape[-1])), res.center
+
+    c0, P0 = np.asarray(prior.center), np.asarray(prior.shape)
+    w_bar, v_bar = np.asarray(model.process_bound), np.asarray(model.measurement_bound)
+
+    def numpy_volume(w_scale, ys):
+        centres, shapes, _ = numpy_ref.numpy_smf(np.asarray(ys), c0, P0, w_scale * w_bar, v_bar)
+        return np.linalg.slogdet(shapes[-1])[1], centres
+
+    return jaxest_volume, numpy_volume
+
+
 def passes(loglik):
     """forward and value_and_grad versions of a (q_scale, ys) -> (loglik, means) function."""
     value_and_grad = jax.value_and_grad(lambda q, ys: loglik(q, ys)[0])
     return {"forward": loglik, "value_and_grad": value_and_grad}
+
+
+def numpy_seconds(fn, scales, ys, repeats: int = 3) -> float:
+    """Best of ``repeats`` wall times of the NumPy loop over the runs (scales[i], ys[i])."""
+    best = math.inf
+    for _ in range(repeats):
+        start = time.perf_counter()
+        for q, y in zip(scales, ys, strict=True):
+            fn(q, y)
+        best = min(best, time.perf_counter() - start)
+    return best
+
+
+def dynamax_rows(name, build, args):
+    """The rows of one problem against dynamax (same data, same modes and passes)."""
+    model, prior, ours, theirs = build()
+    keys = jax.random.split(jax.random.PRNGKey(1), args.runs)
+    ys = jax.vmap(lambda k: je.simulate(model, prior, args.steps, k).y)(keys)
+    scales = jnp.linspace(0.5, 2.0, args.runs)  # a different Q per run
+    a, b = ours(1.0, ys[0])[0], theirs(1.0, ys[0])[0]
+    if not np.isclose(a, b, rtol=1e-6):  # Joseph vs plain update differ in rounding
+        raise RuntimeError(f"{name}: the two libraries disagree ({a} vs {b}): not the same problem")
+    rows = []
+    for mode in ("single", "vmap200"):
+        for pass_name in ("forward", "value_and_grad"):
+            fns = [passes(ours)[pass_name], passes(theirs)[pass_name]]
+            if mode == "single":
+                call_args, per = (jnp.asarray(1.0), ys[0]), args.steps
+            else:
+                fns = [jax.vmap(fn) for fn in fns]
+                call_args, per = (scales, ys), args.steps * args.runs
+            (c_ours, t_ours, _), (_, t_theirs, _) = (
+                timed(fns[0], call_args),
+                timed(fns[1], call_args),
+            )
+            rows.append(row(name, mode, pass_name, t_ours / per, t_theirs / per, c_ours))
+    return rows
+
+
+def smf_rows(args):
+    """The SMF rows: jaxest (single run, and vmap over runs) against the NumPy loop."""
+    ours, numpy_volume = smf_problem()
+    keys = jax.random.split(jax.random.PRNGKey(1), args.runs)
+    ys = jax.vmap(lambda k: smf_fdi.simulate_run(k, None)[1])(keys)
+    steps = ys.shape[1]
+    scales = jnp.linspace(0.5, 2.0, args.runs)  # a different process bound per run
+    a, b = ours(1.0, ys[0])[0], numpy_volume(1.0, ys[0])[0]
+    if not np.isclose(a, b, rtol=1e-9):
+        raise RuntimeError(f"duffing_smf: jaxest and the NumPy loop disagree ({a} vs {b})")
+    ys_np, scales_np = np.asarray(ys), np.asarray(scales)
+    t_numpy = {
+        "single": numpy_seconds(numpy_volume, [1.0], ys_np[:1]) / steps,
+        "vmap200": numpy_seconds(numpy_volume, scales_np[:NUMPY_RUNS], ys_np[:NUMPY_RUNS])
+        / (NUMPY_RUNS * steps),
+    }
+    rows = []
+    for mode in ("single", "vmap200"):
+        for pass_name in ("forward", "value_and_grad"):
+            fn = passes(ours)[pass_name]
+            if mode == "single":
+                call_args, per = (jnp.asarray(1.0), ys[0]), steps
+            else:
+                fn, call_args, per = jax.vmap(fn), (scales, ys), steps * args.runs
+            c_ours, t_ours, _ = timed(fn, call_args)
+            rows.append(row("duffing_smf", mode, pass_name, t_ours / per, t_numpy[mode], c_ours))
+            rows[-1]["reference"] = "numpy loop (benchmarks/smf.py), forward only"
+    return rows
+
+
+def row(problem, mode, pass_name, ours_s, theirs_s, compile_s):
+    """One output row from per-step seconds."""
+    result = {
+        "problem": problem,
+        "mode": mode,
+        "pass": pass_name,
+        "jaxest_us_per_step": 1e6 * ours_s,
+        "dynamax_us_per_step": 1e6 * theirs_s,
+        "ratio": ours_s / theirs_s,
+        "jaxest_compile_s": compile_s,
+    }
+    print(json.dumps(result), flush=True)
+    return result
+
+
+PROBLEMS = {
+    "linear_4x2": lambda args: dynamax_rows("linear_4x2", linear_problem, args),
+    "linear_6x3": lambda args: dynamax_rows("linear_6x3", lambda: linear_problem(6, 3), args),
+    "duffing_ekf": lambda args: dynamax_rows("duffing_ekf", duffing_problem, args),
+    "duffing_smf": smf_rows,
+}
 
 
 def main(argv=None):
@@ -100,42 +239,14 @@ def main(argv=None):
     parser.add_argument("--json", help="write the results here as well as to stdout")
     parser.add_argument("--steps", type=int, default=T, help="time steps per run (default 1000)")
     parser.add_argument("--runs", type=int, default=RUNS, help="runs under vmap (default 200)")
+    parser.add_argument(
+        "--problems", nargs="+", choices=list(PROBLEMS), default=list(PROBLEMS),
+        help="which problems (default: all)",
+    )  # fmt: skip
     args = parser.parse_args(argv)
     rows = []
-    for name, build in (("linear_4x2", linear_problem), ("duffing_ekf", duffing_problem)):
-        model, prior, ours, theirs = build()
-        keys = jax.random.split(jax.random.PRNGKey(1), args.runs)
-        ys = jax.vmap(lambda k: je.simulate(model, prior, args.steps, k).y)(keys)
-        scales = jnp.linspace(0.5, 2.0, args.runs)  # a different Q per run
-        a, b = ours(1.0, ys[0])[0], theirs(1.0, ys[0])[0]
-        if not np.isclose(a, b, rtol=1e-6):  # Joseph vs plain update differ in rounding
-            raise RuntimeError(
-                f"{name}: the two libraries disagree ({a} vs {b}): not the same problem"
-            )
-        for mode in ("single", "vmap200"):
-            for pass_name in ("forward", "value_and_grad"):
-                fns = [passes(ours)[pass_name], passes(theirs)[pass_name]]
-                if mode == "single":
-                    call_args, per = (jnp.asarray(1.0), ys[0]), args.steps
-                else:
-                    fns = [jax.vmap(fn) for fn in fns]
-                    call_args, per = (scales, ys), args.steps * args.runs
-                (c_ours, t_ours, _), (_, t_theirs, _) = (
-                    timed(fns[0], call_args),
-                    timed(fns[1], call_args),
-                )
-                rows.append(
-                    {
-                        "problem": name,
-                        "mode": mode,
-                        "pass": pass_name,
-                        "jaxest_us_per_step": 1e6 * t_ours / per,
-                        "dynamax_us_per_step": 1e6 * t_theirs / per,
-                        "ratio": t_ours / t_theirs,
-                        "jaxest_compile_s": c_ours,
-                    }
-                )
-                print(json.dumps(rows[-1]), flush=True)
+    for name in args.problems:
+        rows += PROBLEMS[name](args)
     forward = {
         (r["problem"], r["mode"]): r["jaxest_us_per_step"] for r in rows if r["pass"] == "forward"
     }

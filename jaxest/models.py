@@ -29,6 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxest._priors import Gaussian
+from jaxest.linalg import mv
 
 
 def at_time(matrix: Array, k, ndim: int = 2) -> Array:
@@ -112,15 +113,15 @@ class LinearGaussian(AbstractGaussianModel):
     D: Float[Array, "*T m p"] | None = None
 
     def f(self, x, u=None, k=0):
-        mean = at_time(self.F, k) @ x
+        mean = mv(at_time(self.F, k), x)
         if self.B is not None and u is not None:
-            mean = mean + at_time(self.B, k) @ u
+            mean = mean + mv(at_time(self.B, k), u)
         return mean
 
     def h(self, x, u=None, k=0):
-        mean = at_time(self.H, k) @ x
+        mean = mv(at_time(self.H, k), x)
         if self.D is not None and u is not None:
-            mean = mean + at_time(self.D, k) @ u
+            mean = mean + mv(at_time(self.D, k), u)
         return mean
 
     def process_noise(self, x, u, k):

@@ -10,6 +10,11 @@ from jaxest.linalg import (
     after,
     cho_solve_lower,
     cholesky,
+    cov_from_factor,
+    factor_psd,
+    mm,
+    mv,
+    right_svd,
     solve_triangular,
     tria,
     tria_gram,
@@ -38,6 +43,114 @@ def test_cholesky_and_solves_match_lapack(n, dtype):
     v = solve_triangular(L[0], B[0, :, 0], lower=True)
     np.testing.assert_allclose(L[0] @ v, B[0, :, 0], rtol=tol, atol=tol)
     np.testing.assert_allclose(A @ cho_solve_lower(L, B), B, rtol=100 * tol, atol=100 * tol)
+
+
+@pytest.mark.parametrize("shape", [(1, 1, 1), (4, 4, 4), (2, 6, 3), (8, 8, 8), (9, 8, 8)])
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_mm_matches_matmul_with_its_derivatives(shape, dtype):
+    m, k, n = shape
+    rng = np.random.default_rng(sum(shape))
+    a, da = (jnp.asarray(rng.normal(size=(5, m, k)), dtype) for _ in range(2))
+    b, db = (jnp.asarray(rng.normal(size=(5, k, n)), dtype) for _ in range(2))
+    tol = 1e-5 if dtype == jnp.float32 else 1e-13
+    ref = np.asarray(a, np.float64) @ np.asarray(b, np.float64)
+    out = jax.jit(jax.vmap(mm))(a, b)
+    assert out.dtype == dtype
+    np.testing.assert_allclose(out, ref, rtol=tol, atol=tol)
+    _, tangent = jax.jvp(mm, (a, b), (da, db))
+    np.testing.assert_allclose(tangent, da @ b + a @ db, rtol=tol, atol=tol)
+    _, tangent = jax.jvp(lambda a: mm(a, b), (a,), (da,))  # a constant operand
+    np.testing.assert_allclose(tangent, da @ b, rtol=tol, atol=tol)
+    loss = lambda a, b: jnp.sum(jnp.sin(mm(a, b)))
+    g_a, g_b = jax.jit(jax.grad(loss, argnums=(0, 1)))(a, b)
+    g = jnp.cos(a @ b)
+    np.testing.assert_allclose(g_a, g @ jnp.swapaxes(b, -1, -2), rtol=tol, atol=tol)
+    np.testing.assert_allclose(g_b, jnp.swapaxes(a, -1, -2) @ g, rtol=tol, atol=tol)
+    if dtype == jnp.float64:  # and against finite differences
+        step = 1e-6
+        fd = (loss(a + step * da, b) - loss(a - step * da, b)) / (2 * step)
+        np.testing.assert_allclose(jnp.sum(g_a * da), fd, rtol=1e-7)
+
+
+def test_mv_is_mm_of_a_column():
+    rng = np.random.default_rng(0)
+    a, x = jnp.asarray(rng.normal(size=(3, 5, 4))), jnp.asarray(rng.normal(size=(3, 4)))
+    np.testing.assert_allclose(jax.vmap(mv)(a, x), np.einsum("bij,bj->bi", a, x), rtol=1e-13)
+
+
+def assert_within(actual, desired, bound):
+    """|actual - desired| <= bound elementwise (bound broadcast: a per-matrix scale)."""
+    error = np.abs(np.asarray(actual, np.float64) - np.asarray(desired, np.float64))
+    bound = np.broadcast_to(bound, error.shape)
+    assert np.all(error <= bound), f"error up to {np.max(error - bound):.3g} over the bound"
+
+
+def tall_matrices(rng, kind, p, n, count=40):
+    """Test matrices for the SVD kernels: Gaussian, graded columns, condition 1e12 (1e6 in
+    float32 terms), repeated singular values."""
+    X = rng.normal(size=(count, p, n))
+    orth = lambda *shape: np.linalg.qr(rng.normal(size=shape))[0]
+    if kind == "graded":
+        X = X * np.geomspace(1, 1e-9, n)
+    if kind == "ill":
+        X = (orth(count, p, n) * np.geomspace(1, 1e-12, n)) @ orth(count, n, n)
+    if kind == "repeated":
+        X = orth(count, p, n) @ orth(count, n, n)
+    return X
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6, 8, 9])
+@pytest.mark.parametrize("kind", ["gaussian", "graded", "ill", "repeated"])
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_right_svd_matches_numpy(n, kind, dtype):
+    """Singular values to a few eps relative to the largest, and, where they are well separated
+    relative to that error, each to a few eps relative to itself (one-sided Jacobi keeps
+    relative accuracy for graded columns); V orthogonal and A^T A = V S^2 V^T."""
+    rng = np.random.default_rng(n)
+    A64 = tall_matrices(rng, kind, 2 * n, n)
+    A = jnp.asarray(A64, dtype)
+    s, V = jax.jit(jax.vmap(right_svd))(A)
+    assert s.dtype == V.dtype == dtype
+    eps = float(jnp.finfo(dtype).eps)
+    s_ref = np.linalg.svd(np.asarray(A, np.float64), compute_uv=False)
+    assert np.all(np.diff(np.asarray(s), axis=-1) <= 0)  # descending
+    assert_within(s, s_ref, 100 * eps * s_ref[:, :1])
+    if kind == "graded":  # small singular values to relative accuracy
+        assert_within(s, s_ref, 100 * eps * s_ref)
+    eye = np.eye(n)
+    VtV = np.swapaxes(V, -1, -2) @ V
+    np.testing.assert_allclose(VtV, np.broadcast_to(eye, VtV.shape), atol=100 * eps)
+    AV = np.asarray(A, np.float64) @ np.asarray(V, np.float64)
+    # the columns of A V are orthogonal with norms s: A = U S V^T
+    gram = np.swapaxes(AV, -1, -2) @ AV
+    assert_within(gram, s_ref[:, :, None] ** 2 * eye, 100 * eps * s_ref[:, :1, None] ** 2)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6, 8, 9])
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_factor_psd_matches_eigh(n, dtype):
+    rng = np.random.default_rng(10 + n)
+    B = rng.normal(size=(30, n, n)) * np.geomspace(1, 1e-4, n)
+    P64 = B @ np.swapaxes(B, -1, -2)
+    P64[:10, :, -1] = P64[:10, -1, :] = 0  # singular (as a PSD Q may be)
+    P64[10:15] = np.eye(n)  # repeated eigenvalues
+    P = jnp.asarray(P64, dtype)
+    U, D = jax.jit(jax.vmap(factor_psd))(P)
+    assert U.dtype == D.dtype == dtype
+    eps = float(jnp.finfo(dtype).eps)
+    w = np.linalg.eigvalsh(np.asarray(P, np.float64))[:, ::-1]
+    scale = w[:, :1]
+    assert_within(D**2, np.clip(w, 0, None), 100 * eps * scale)
+    assert_within(cov_from_factor(U, D), P, 100 * eps * scale[:, :, None])
+    UtU = np.swapaxes(U, -1, -2) @ U
+    np.testing.assert_allclose(UtU, np.broadcast_to(np.eye(n), UtU.shape), atol=100 * eps)
+    # the derivative is defined at the covariance level: a tangent of U alone reproducing dP
+    P0 = jnp.asarray(P64[20] + w[20, 0] * np.eye(n), dtype)  # well conditioned in float32 too
+    dP = jnp.asarray(P64[21], dtype)
+    (U0, D0), (dU, dD) = jax.jit(lambda P, dP: jax.jvp(factor_psd, (P,), (dP,)))(P0, dP)
+    half = (dU * D0**2) @ U0.T
+    assert_within(half + half.T, dP, 1e3 * eps * w[20, 0])
+    assert np.all(dD == 0)
 
 
 def test_not_positive_definite_gives_nan_like_lapack():

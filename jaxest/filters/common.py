@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from jaxest._status import Status, finite_status
-from jaxest.linalg import cholesky, mm, sandwich, solve_triangular, symmetrize
+from jaxest.linalg import cholesky, mm, mv, sandwich, solve_triangular, symmetrize
 
 #: a Python float: computing it with jnp would start the XLA backend at import (which
 #: jax.distributed.initialize forbids) and fix it in float32 before x64 is switched on
@@ -72,7 +72,7 @@ def joseph_update(x, P, meas: Measurement):
     K = solve_triangular(S_chol.T, Z[:, :n], lower=False).T
     IKH = jnp.eye(n, dtype=P.dtype) - mm(K, H)
     P_post = symmetrize(sandwich(IKH, P) + sandwich(K, R))
-    return x + K @ e, P_post, S, S_chol, Z[:, n]
+    return x + mv(K, e), P_post, S, S_chol, Z[:, n]
 
 
 def covariance_predict(model, x, P, u, k):

@@ -24,7 +24,14 @@ from jaxest.filters.common import (
     masked_measurement,
     step_status,
 )
-from jaxest.linalg import chol_inverse, cholesky, inv_spd, logdet_chol, symmetrize
+from jaxest.linalg import (
+    cho_solve_lower,
+    chol_inverse,
+    cholesky,
+    inv_spd,
+    logdet_chol,
+    symmetrize,
+)
 
 
 class KalmanFilter(AbstractGaussianFilter):
@@ -125,7 +132,7 @@ class InformationFilter(AbstractGaussianFilter):
         F_inv_T = jnp.linalg.inv(F).T
         A = symmetrize(F_inv_T @ upd.info_post @ F_inv_T.T)
         inner = inv_spd(Q) + G.T @ A @ G
-        Y_next = symmetrize(A - A @ G @ jnp.linalg.solve(inner, G.T @ A))
+        Y_next = symmetrize(A - A @ G @ cho_solve_lower(cholesky(inner), G.T @ A))
         status = step_status(x_next, Y_next, upd.loglik, cov_factor=upd.post_chol)
         out = StepOutput(x, P, x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
         return x_next, InformationMatrix(Y_next), out

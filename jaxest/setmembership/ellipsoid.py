@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from jaxest.linalg import symmetrize
+from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
 
 
 class Ellipsoid(eqx.Module):
@@ -198,7 +198,8 @@ def contains(
 
 def spd_solve(matrix: Float[Array, "n n"], vector: Float[Array, " n"]) -> Float[Array, " n"]:
     """matrix^{-1} vector; closed form for n <= 2 (XLA's batched LAPACK calls dominate the
-    filter's run time on CPU for such small matrices), ``jnp.linalg.solve`` otherwise."""
+    filter's run time on CPU for such small matrices), through the Cholesky factor otherwise
+    (unrolled up to ``SMALL_FACTOR``: NaN where ``matrix`` is not positive definite)."""
     n = matrix.shape[-1]
     if n == 1:
         return vector / matrix[0, 0]
@@ -206,7 +207,7 @@ def spd_solve(matrix: Float[Array, "n n"], vector: Float[Array, " n"]) -> Float[
         (a, b), (c, d) = matrix[0], matrix[1]
         det = a * d - b * c
         return jnp.stack([d * vector[0] - b * vector[1], a * vector[1] - c * vector[0]]) / det
-    return jnp.linalg.solve(matrix, vector)
+    return cho_solve_lower(cholesky(matrix), vector)
 
 
 def is_positive_definite(matrix: Float[Array, "n n"]) -> Bool[Array, ""]:
@@ -217,7 +218,7 @@ def is_positive_definite(matrix: Float[Array, "n n"]) -> Bool[Array, ""]:
         return matrix[0, 0] > 0
     if n == 2:
         return (matrix[0, 0] > 0) & (matrix[0, 0] * matrix[1, 1] - matrix[0, 1] * matrix[1, 0] > 0)
-    return jnp.all(jnp.isfinite(jnp.linalg.cholesky(matrix)))
+    return jnp.all(jnp.isfinite(cholesky(matrix)))
 
 
 def condition_number(matrix: Float[Array, "n n"]) -> Float[Array, ""]:

@@ -35,6 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxest.linalg import cholesky, solve_triangular
+
 
 def sensor_subset(ys: Float[Array, "T m"], used: Bool[Array, " m"]) -> Float[Array, "T m"]:
     """``ys`` with the columns of the sensors not ``used`` replaced by NaN (no measurement)."""
@@ -126,9 +128,5 @@ def chi_square_alarms(
     innovation: Float[Array, "T m"], innovation_cov: Float[Array, "T m m"], threshold: float
 ) -> Bool[Array, " T"]:
     """The chi-square test of an EKF's innovations: alarm when nu^T S^{-1} nu > threshold."""
-    nis = jnp.einsum(
-        "...ti,...ti->...t",
-        innovation,
-        jnp.linalg.solve(innovation_cov, innovation[..., None])[..., 0],
-    )
-    return nis > threshold
+    whitened = solve_triangular(cholesky(innovation_cov), innovation, lower=True)
+    return jnp.sum(whitened**2, -1) > threshold
