@@ -2,8 +2,8 @@ PYTHON ?= python3.11
 VENV := .venv
 BIN := $(VENV)/bin
 OUT ?= results
-# JAX's persistent compilation cache lives outside the clone, one directory per processor
-# (jaxest/compile_cache.py): the test suite and `python -m jaxest` turn it on themselves.
+# JAX's persistent compilation cache: off unless JAXEST_COMPILATION_CACHE=1 (jaxest/compile_cache.py
+# says why); then outside the clone, one directory per processor.
 
 .PHONY: reproduce test lint format clean docs docs-check wheel-check
 

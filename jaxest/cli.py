@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)  # studies run in float64 unless they say otherwise
-    compile_cache.enable()  # a second run reloads compiled programs
+    compile_cache.enable()  # where JAXEST_COMPILATION_CACHE=1 asks for it
     names = list(studies.STUDIES) if "all" in args.study else args.study
     if args.runs is not None and args.runs < 1:
         raise SystemExit("--runs: must be at least 1")

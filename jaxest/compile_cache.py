@@ -1,4 +1,11 @@
-"""JAX's persistent compilation cache, one directory per host processor.
+"""JAX's persistent compilation cache, one directory per host processor; off unless asked for.
+
+Off by default: writing a cache entry serialises the compiled executable, and on jaxlib 0.10
+that serialisation (``executable.serialize()`` in ``compilation_cache.put_executable_and_time``)
+crashed the process with a segmentation fault, at random, in two full test-suite runs on 2-core
+CPUs (CI, and a clean clone here: a different test each time, each of which passes when run
+again). ``JAXEST_COMPILATION_CACHE=1`` turns it on (:func:`enable`), as does setting
+``JAX_COMPILATION_CACHE_DIR``, which JAX itself reads.
 
 An XLA:CPU executable is machine code for the processor it was compiled on, and JAX's cache key
 (jax 0.10) names the platform ("cpu") but not the processor: a cache in a home directory shared
@@ -28,6 +35,8 @@ import tempfile
 import textwrap
 from pathlib import Path
 
+#: the environment variable that asks for the cache
+REQUEST = "JAXEST_COMPILATION_CACHE"
 #: programs that compile faster than this are not written to the cache
 MIN_COMPILE_SECONDS = 0.2
 #: the probe's verdict in a cache directory: {"usable": bool, "reason": str}
@@ -147,12 +156,14 @@ def _verdict(path: Path) -> dict:
 
 
 def enable() -> Path | None:
-    """Turn the cache on in this process and in the processes it starts (through the
-    environment: notebooks, subprocesses of tests) where the probe found it usable; returns the
-    directory, or None where the cache stays off. An explicit ``JAX_COMPILATION_CACHE_DIR`` is
-    used without a probe."""
+    """Turn the cache on, where ``JAXEST_COMPILATION_CACHE=1`` asks for it and the probe found
+    it usable, in this process and in the processes it starts (through the environment:
+    notebooks, subprocesses of tests); returns the directory, or None where the cache stays off.
+    An explicit ``JAX_COMPILATION_CACHE_DIR`` is used without a probe."""
     import jax
 
+    if os.environ.get(REQUEST) != "1" and "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+        return None
     path = cache_dir()
     if "JAX_COMPILATION_CACHE_DIR" not in os.environ and not _verdict(path)["usable"]:
         return None

@@ -6,8 +6,6 @@ from jaxest import compile_cache
 jax.config.update("jax_enable_x64", True)
 
 
-# Reload compiled programs across test sessions (a second `make test` skips most compilation), in
-# a directory per processor (jaxest.compile_cache); subprocesses and notebooks inherit it.
-# jaxlib 0.10 rejects entries on some AVX-512 hosts ("Target machine feature ... is not
-# supported"): it then logs a warning and compiles afresh, so results never depend on the cache.
+# JAX's persistent compilation cache only where JAXEST_COMPILATION_CACHE=1 asks for it
+# (jaxest.compile_cache says why it is off by default); subprocesses and notebooks inherit it.
 compile_cache.enable()

@@ -49,6 +49,9 @@ def test_the_probe_verdict_is_kept_and_obeyed(monkeypatch, tmp_path):
     calls = []
     verdict = {"usable": False, "reason": "rejected here"}
     monkeypatch.setattr(compile_cache, "probe", lambda: calls.append(1) or verdict)
+    monkeypatch.delenv(compile_cache.REQUEST, raising=False)
+    assert compile_cache.enable() is None and not calls  # off unless asked for: no probe
+    monkeypatch.setenv(compile_cache.REQUEST, "1")
     assert compile_cache.enable() is None and compile_cache.enable() is None
     assert len(calls) == 1  # the verdict is read back, not probed again
     kept = json.loads((compile_cache.cache_dir() / compile_cache.PROBE_FILE).read_text())
