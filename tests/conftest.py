@@ -9,3 +9,19 @@ jax.config.update("jax_enable_x64", True)
 # JAX's persistent compilation cache only where JAXEST_COMPILATION_CACHE=1 asks for it
 # (jaxest.compile_cache says why it is off by default); subprocesses and notebooks inherit it.
 compile_cache.enable()
+
+
+#: how often each test's worker process crashed (pytest-xdist)
+_crashes: dict[str, int] = {}
+
+
+def pytest_handlecrashitem(crashitem, report, sched):
+    """Run a test whose pytest-xdist worker crashed once more, in a fresh worker; a second crash
+    fails it. jaxlib 0.10 crashes a process now and then inside XLA: in three clean-clone runs of
+    the suite on 2-core CPUs, one worker each died in a different test (a segmentation fault in
+    ``executable.serialize()``, an abort in ``backend_compile_and_load``), and each of those tests
+    passes when run again. Only a dead worker is retried; a failing assertion is not."""
+    _crashes[crashitem] = _crashes.get(crashitem, 0) + 1
+    if _crashes[crashitem] == 1:
+        sched.mark_test_pending(crashitem)
+        report.outcome = "rerun"

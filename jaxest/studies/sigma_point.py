@@ -13,7 +13,7 @@ ESS < N/2). Problems:
     Skipped there (``SKIPPED``): the Gauss-Hermite filter (3^23 ~ 9.4e10 points), the particle
     filter (16 of the 23 states are constant sensor parameters without process noise: the
     particles never rejuvenate them, so 10^3 particles in 23 dimensions collapse onto a few
-    values) and, for run time, the cubature filter;
+    values);
 (c) ``bearings``: bearings-only tracking of Gordon, Salmond & Smith (:mod:`jaxest.systems.bearings`),
     T = 24, the true initial state drawn from the prior.
 
@@ -82,11 +82,6 @@ SKIPPED = {
     "flight": {
         **{
             f"ghkf_{f}": "3^23 Gauss-Hermite points in 23 dimensions"
-            for f in ("covariance", "sqrt", "svd")
-        },
-        **{
-            f"ckf_{f}": "differs from the UKF only in its weights (alpha = 1, beta = 0); left out "
-            "of the expensive case to keep the default run short"
             for f in ("covariance", "sqrt", "svd")
         },
         "pf_1000": "16 constant parameters without process noise: 1000 particles in 23 "
