@@ -163,20 +163,22 @@ def dynamax_rows(name, build, args):
     if not np.isclose(a, b, rtol=1e-6):  # Joseph vs plain update differ in rounding
         raise RuntimeError(f"{name}: the two libraries disagree ({a} vs {b}): not the same problem")
     rows = []
-    for mode in ("single", "vmap200"):
+    for mode, wrap, call_args, per in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            fns = [passes(ours)[pass_name], passes(theirs)[pass_name]]
-            if mode == "single":
-                call_args, per = (jnp.asarray(1.0), ys[0]), args.steps
-            else:
-                fns = [jax.vmap(fn) for fn in fns]
-                call_args, per = (scales, ys), args.steps * args.runs
-            (c_ours, t_ours, _), (_, t_theirs, _) = (
-                timed(fns[0], call_args),
-                timed(fns[1], call_args),
-            )
+            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args)
+            _, t_theirs, _ = timed(wrap(passes(theirs)[pass_name]), call_args)
             rows.append(row(name, mode, pass_name, t_ours / per, t_theirs / per, c_ours))
     return rows
+
+
+def modes(ys, scales):
+    """(mode, wrap, call arguments, steps per call): one sequence at scale 1, and every run of
+    ``ys`` (runs, T, m) under ``vmap`` with its own scale."""
+    runs, steps = ys.shape[:2]
+    return [
+        ("single", lambda fn: fn, (jnp.asarray(1.0), ys[0]), steps),
+        ("vmap200", jax.vmap, (scales, ys), steps * runs),
+    ]
 
 
 def smf_rows(args):
@@ -196,14 +198,9 @@ def smf_rows(args):
         / (NUMPY_RUNS * steps),
     }
     rows = []
-    for mode in ("single", "vmap200"):
+    for mode, wrap, call_args, per in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            fn = passes(ours)[pass_name]
-            if mode == "single":
-                call_args, per = (jnp.asarray(1.0), ys[0]), steps
-            else:
-                fn, call_args, per = jax.vmap(fn), (scales, ys), steps * args.runs
-            c_ours, t_ours, _ = timed(fn, call_args)
+            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args)
             rows.append(row("duffing_smf", mode, pass_name, t_ours / per, t_numpy[mode], c_ours))
             rows[-1]["reference"] = "numpy loop (benchmarks/smf.py), forward only"
     return rows

@@ -162,16 +162,16 @@ def enable() -> Path | None:
     An explicit ``JAX_COMPILATION_CACHE_DIR`` is used without a probe."""
     import jax
 
-    if os.environ.get(REQUEST) != "1" and "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    explicit = "JAX_COMPILATION_CACHE_DIR" in os.environ
+    if not explicit and os.environ.get(REQUEST) != "1":
         return None
     path = cache_dir()
-    if "JAX_COMPILATION_CACHE_DIR" not in os.environ and not _verdict(path)["usable"]:
+    if not explicit and not _verdict(path)["usable"]:
         return None
     os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
-    os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(MIN_COMPILE_SECONDS))
-    jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update(
-        "jax_persistent_cache_min_compile_time_secs",
-        float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]),
+    min_seconds = os.environ.setdefault(
+        "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", str(MIN_COMPILE_SECONDS)
     )
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_seconds))
     return path

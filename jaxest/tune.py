@@ -24,6 +24,12 @@ from jaxest._run import SaveAt, run
 PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
 
 
+def _unknown(parametrisation) -> ValueError:
+    return ValueError(
+        f"parametrisation: expected one of {PARAMETRISATIONS}, got {parametrisation!r}"
+    )
+
+
 def to_unconstrained(P, parametrisation: str):
     """The unconstrained parameter of ``P`` (SPD unless ``"unconstrained"``)."""
     if parametrisation == "unconstrained":
@@ -33,9 +39,7 @@ def to_unconstrained(P, parametrisation: str):
         return jnp.tril(L, -1) + jnp.diag(jnp.log(jnp.diag(L)))
     if parametrisation == "log_diagonal":
         return jnp.log(jnp.diag(P))
-    raise ValueError(
-        f"parametrisation: expected one of {PARAMETRISATIONS}, got {parametrisation!r}"
-    )
+    raise _unknown(parametrisation)
 
 
 def from_unconstrained(theta, parametrisation: str):
@@ -47,9 +51,7 @@ def from_unconstrained(theta, parametrisation: str):
         return L @ L.T
     if parametrisation == "log_diagonal":
         return jnp.diag(jnp.exp(theta))
-    raise ValueError(
-        f"parametrisation: expected one of {PARAMETRISATIONS}, got {parametrisation!r}"
-    )
+    raise _unknown(parametrisation)
 
 
 class FitResult(eqx.Module):

@@ -17,10 +17,10 @@ _crashes: dict[str, int] = {}
 
 def pytest_handlecrashitem(crashitem, report, sched):
     """Run a test whose pytest-xdist worker crashed once more, in a fresh worker; a second crash
-    fails it. jaxlib 0.10 crashes a process now and then inside XLA: in three clean-clone runs of
-    the suite on 2-core CPUs, one worker each died in a different test (a segmentation fault in
-    ``executable.serialize()``, an abort in ``backend_compile_and_load``), and each of those tests
-    passes when run again. Only a dead worker is retried; a failing assertion is not."""
+    fails it. jaxlib 0.10 crashes a process now and then inside XLA: in four full runs of the
+    suite on 2-core CPUs (CI and clean clones), one worker each died in a different test (a segmentation fault in
+    ``executable.serialize()``, an abort or a segmentation fault in ``backend_compile_and_load``), and each
+    of those tests passes when run again. Only a dead worker is retried; a failing assertion is not."""
     _crashes[crashitem] = _crashes.get(crashitem, 0) + 1
     if _crashes[crashitem] == 1:
         sched.mark_test_pending(crashitem)

@@ -25,8 +25,8 @@ import jax.numpy as jnp
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
-from jaxest.linalg import after, cho_solve_lower, cholesky, symmetrize
-from jaxest.smoothers.rts import SmootherResult
+from jaxest.linalg import after, symmetrize
+from jaxest.smoothers.rts import SmootherResult, smoother_gain, transition_cross_covariance
 
 
 def smoother_gains(model, result: FilterResult, inputs=None):
@@ -38,10 +38,10 @@ def smoother_gains(model, result: FilterResult, inputs=None):
     T = result.mean.shape[0]
     u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
     pred_cov = after(result.predicted_cov[1:], result)
+    cross_covariance = transition_cross_covariance(model)
 
     def gain(k, mean, cov, pred_cov_next, u):
-        _, F, _, _ = model.transition(mean, u, k)
-        return cho_solve_lower(cholesky(pred_cov_next), F @ cov).T
+        return smoother_gain(cross_covariance(k, mean, cov, u), pred_cov_next)
 
     return jax.vmap(gain)(jnp.arange(T - 1), result.mean[:-1], result.cov[:-1], pred_cov, u_seq)
 

@@ -58,11 +58,22 @@ def rts_smooth(
 
 @eqx.filter_jit
 def _rts_smooth(model, result: FilterResult, inputs) -> SmootherResult:
-    def cross_covariance(k, mean, cov, u):  # P(k|k) F_k^T
+    return backward_pass(result, inputs, transition_cross_covariance(model))
+
+
+def transition_cross_covariance(model):
+    """``(k, x(k|k), P(k|k), u_k) -> P(k|k) F_k^T``, F_k linearised at x(k|k)."""
+
+    def cross_covariance(k, mean, cov, u):
         _, F, _, _ = model.transition(mean, u, k)
         return cov @ F.T
 
-    return backward_pass(result, inputs, cross_covariance)
+    return cross_covariance
+
+
+def smoother_gain(cross_cov, pred_cov_next):
+    """C_k = D_k P(k+1|k)^-1 for D_k = ``cross_cov`` (through the Cholesky factor)."""
+    return cho_solve_lower(cholesky(pred_cov_next), cross_cov.T).T
 
 
 def backward_pass(result: FilterResult, inputs, cross_covariance) -> SmootherResult:
@@ -76,8 +87,7 @@ def backward_pass(result: FilterResult, inputs, cross_covariance) -> SmootherRes
     def backward(carry, args):
         mean_next, cov_next = carry
         k, mean, cov, pred_mean_next, pred_cov_next, u = args
-        D = cross_covariance(k, mean, cov, u)
-        gain = cho_solve_lower(cholesky(pred_cov_next), D.T).T
+        gain = smoother_gain(cross_covariance(k, mean, cov, u), pred_cov_next)
         mean_s = mean + gain @ (mean_next - pred_mean_next)
         cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)
         return (mean_s, cov_s), (mean_s, cov_s, finite_status(mean_s, cov_s))
