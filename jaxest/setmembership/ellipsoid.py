@@ -16,6 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
+from jaxest.setmembership.rounding import correlation_floor, gamma, outward, unit_roundoff
 
 
 class Ellipsoid(eqx.Module):
@@ -32,28 +33,61 @@ def _safe(condition, value, fallback=1.0):
 
 def add_segment(shape: Float[Array, "n n"], direction: Float[Array, " n"]) -> Float[Array, "n n"]:
     """Shape of the least-volume ellipsoid of the family (1 + p) P + (1 + 1/p) s s^T containing
-    E(c, P) + {t s : |t| <= 1} (eqs 16-17; the centre is unchanged).
+    E(c, P) + {t s : |t| <= 1} (eqs 16-17; the centre is unchanged), rounded outward (eq O3).
 
     p > 0 is the root of n p^2 + (n - 1) a p - a = 0, a = s^T P^{-1} s, computed as
     p = 2a / ((n - 1) a + sqrt((n - 1)^2 a^2 + 4 n a)) (no cancellation; n = 1 gives sqrt(a)).
     A zero segment leaves P unchanged.
     """
-    n = shape.shape[-1]
-    a = direction @ spd_solve(shape, direction)
-    nonzero = a > 0
-    a_ = _safe(nonzero, a)
-    p = 2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_))
-    grown = (1 + p) * shape + (1 + 1 / p) * jnp.outer(direction, direction)
-    return jnp.where(nonzero, symmetrize(grown), shape)
+    return add_box_of_segments(shape, direction[None, :])
 
 
-def add_box(shape: Float[Array, "n n"], half_widths: Float[Array, " n"]) -> Float[Array, "n n"]:
+def add_box(
+    shape: Float[Array, "n n"],
+    half_widths: Float[Array, " n"],
+    shape_error: Float[Array, "n n"] | None = None,
+) -> Float[Array, "n n"]:
     """Outer ellipsoid of E(c, P) + {w : |w_i| <= half_widths_i}: the box is the sum of the n
-    segments half_widths_i e_i, added one at a time (eq 16 for i = 1..n; P_{k|k-1} = P^n)."""
+    segments half_widths_i e_i, added one at a time (eq 16 for i = 1..n; P_{k|k-1} = P^n),
+    rounded outward once at the end (eq O3). ``shape_error`` bounds the rounding error already in
+    ``shape`` (element-wise; the time update's F P F^T)."""
     n = shape.shape[-1]
-    for i in range(n):
-        shape = add_segment(shape, half_widths[i] * jnp.eye(n, dtype=shape.dtype)[i])
-    return shape
+    segments = half_widths[:, None] * jnp.eye(n, dtype=shape.dtype)
+    return add_box_of_segments(shape, segments, shape_error)
+
+
+def add_box_of_segments(shape, segments, shape_error=None):
+    """E(c, P) + the segments {t s_i : |t| <= 1} (rows of ``segments``) one at a time, each with
+    its least-volume p_i (eqs 16-17), then rounded outward (eq O3). Any p_i > 0 gives an outer
+    ellipsoid, so the rounding of p_i costs nothing; the bound E_P of the rest follows the
+    recursion P_{i+1} = (1 + p_i) P_i + (1 + 1/p_i) s_i s_i^T: E_{i+1} = (1 + p_i) E_i +
+    gamma_6 ((1 + p_i) |P_i| + (1 + 1/p_i) |s_i| |s_i|^T) (six roundings per entry, the
+    symmetrisation included)."""
+    n = shape.shape[-1]
+    error = jnp.zeros_like(shape) if shape_error is None else shape_error
+    for direction in segments:
+        a = direction @ spd_solve(shape, direction)
+        nonzero = a > 0
+        a_ = _safe(nonzero, a)
+        p = 2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_))
+        outer = jnp.outer(direction, direction)
+        grown = symmetrize((1 + p) * shape + (1 + 1 / p) * outer)
+        grown_error = (1 + p) * error + gamma(6, shape.dtype) * (
+            (1 + p) * jnp.abs(shape) + (1 + 1 / p) * jnp.abs(outer)
+        )
+        shape = jnp.where(nonzero, grown, shape)
+        error = jnp.where(nonzero, grown_error, error)
+    return outward(shape, error)
+
+
+def linear_image(matrix: Float[Array, "n n"], shape: Float[Array, "n n"]):
+    """``(F P F^T, bound on its rounding error)``: the shape of F E(c, P) = E(F c, F P F^T)
+    (eq 15) and gamma_{2n} |F| |P| |F|^T (two products, Higham eq 3.13), to be rounded outward
+    with the segments that follow (:func:`add_box`)."""
+    image = symmetrize(matrix @ shape @ matrix.T)
+    n = shape.shape[-1]
+    error = gamma(2 * n + 1, shape.dtype) * (jnp.abs(matrix) @ jnp.abs(shape) @ jnp.abs(matrix).T)
+    return image, error
 
 
 def intersect_strip(
@@ -63,7 +97,8 @@ def intersect_strip(
     value: Float[Array, ""],
     half_width: Float[Array, ""],
 ) -> tuple[Float[Array, " n"], Float[Array, "n n"], Bool[Array, ""]]:
-    """Outer ellipsoid of E(c, P) ∩ {x : |value - normal^T x| <= half_width} (eqs 27-36).
+    """Outer ellipsoid of E(c, P) ∩ {x : |value - normal^T x| <= half_width} (eqs 27-36),
+    rounded outward (eqs O1-O5 of docs/papers/smf.md).
 
     With g = h^T P h and phi+- = (z - h^T c +- v) / sqrt(g) (eqs 29-31):
 
@@ -77,24 +112,43 @@ def intersect_strip(
       (eqs 32-34). Dividing eq 36 by g^2 shows q depends on phi+- only; it is solved so.
     - n = 1: the exact interval intersection.
 
+    Rounding (eq O4): the strip is widened by the rounding error of phi+-, and the slab's
+    half-width 1 by that of sqrt(g), so the cut strip holds every point of the exact one; an
+    empty intersection is reported only where the widened strip misses the widened slab (a
+    guaranteed alarm). Any q > 0 gives an outer ellipsoid, so q's rounding costs nothing; the
+    factor 1 + q - q e^2/s is bounded from above, and the centre and shape (:func:`_joseph`)
+    carry element-wise error bounds into :func:`~jaxest.setmembership.rounding.outward`.
+
     Returns ``(center, shape, empty)``.
     """
     n = shape.shape[-1]
+    dtype = shape.dtype
+    u = unit_roundoff(dtype)
     Ph = shape @ normal
+    abs_Ph = jnp.abs(shape) @ jnp.abs(normal)
     g = normal @ Ph
     positive = g > 0
     root_g = jnp.sqrt(_safe(positive, g))
+    # |g^ - g| / g^ and the slab's half-width in units of the computed sqrt(g) (eq O4)
+    g_error = gamma(2 * n, dtype) * (jnp.abs(normal) @ abs_Ph) / _safe(positive, g)
+    slab = 1 + g_error + 2 * u
     offset = value - normal @ center
-    phi_plus = (offset + half_width) / root_g
-    phi_minus = (offset - half_width) / root_g
-    empty = positive & ((phi_plus < -1) | (phi_minus > 1))
-    phi_plus = jnp.minimum(phi_plus, 1.0)
-    phi_minus = jnp.maximum(phi_minus, -1.0)
+    offset_error = gamma(n + 1, dtype) * (jnp.abs(value) + jnp.abs(normal) @ jnp.abs(center))
+    slack = (offset_error + gamma(4, dtype) * (jnp.abs(offset) + half_width)) / root_g
+    phi_plus = (offset + half_width) / root_g + slack
+    phi_minus = (offset - half_width) / root_g - slack
+    empty = positive & ((phi_plus < -slab) | (phi_minus > slab))
+    phi_plus = jnp.minimum(phi_plus, slab)
+    phi_minus = jnp.maximum(phi_minus, -slab)
     e = 0.5 * (phi_plus + phi_minus)  # e / sqrt(g), eq 35
-    d = 0.5 * (phi_plus - phi_minus)  # d / sqrt(g)
+    # d / sqrt(g), rounded up so that [e - d, e + d] covers [phi-, phi+]
+    d = 0.5 * (phi_plus - phi_minus) * (1 + 2 * u) + 2 * u * jnp.abs(e)
     if n == 1:
-        new_center = center + e * root_g * Ph / _safe(positive, g)
+        step = e * root_g * Ph / _safe(positive, g)
+        new_center = center + step
         new_shape = d**2 * shape
+        center_error = gamma(6, dtype) * jnp.abs(step) + u * jnp.abs(new_center)
+        shape_error = gamma(6, dtype) * jnp.abs(new_shape)
         update = positive & ~empty
     else:
         update = positive & ~empty & (phi_plus * phi_minus > -1.0 / n)
@@ -103,20 +157,36 @@ def intersect_strip(
         C = d**2 * (n * (d**2 - e**2) - 1)  # < 0 exactly when an update is due
         root_disc = jnp.sqrt(_safe(update, B**2 - 4 * A * C))
         q = jnp.where(B >= 0, -2 * C / _safe(update, B + root_disc), (root_disc - B) / (2 * A))
-        s = _safe(update, d**2 + q)  # s / g
-        new_center = center + (q * e / s / root_g) * Ph
-        new_shape = (1 + q - q * e**2 / s) * _joseph(
-            shape, normal, Ph, g, d**2 / _safe(update, q, 1.0)
+        update = update & (q > 0)
+        q = _safe(update, q)
+        s = d**2 + q  # s / g
+        shrink = q * e**2 / s
+        # the factor 1 + q - q e^2/s, rounded up; g^ != g changes it by at most shrink g_error
+        scale = 1 + q - shrink + gamma(6, dtype) * (1 + q + shrink) + 2 * g_error * shrink
+        scale = jnp.maximum(scale, 0.0)
+        coefficient = q * e / s / root_g
+        step = coefficient * Ph
+        new_center = center + step
+        center_error = (
+            (gamma(6, dtype) + 2 * g_error) * jnp.abs(step)
+            + jnp.abs(coefficient) * gamma(n, dtype) * abs_Ph
+            + u * jnp.abs(new_center)
         )
+        joseph, joseph_error = _joseph(shape, normal, Ph, g, d**2 / q)
+        new_shape = scale * joseph
+        shape_error = scale * joseph_error + u * jnp.abs(new_shape)
+    # u |P+|: the symmetrisation's rounding
+    new_shape = outward(symmetrize(new_shape), shape_error + u * jnp.abs(new_shape), center_error)
     return (
         jnp.where(update, new_center, center),
-        jnp.where(update, symmetrize(new_shape), shape),
+        jnp.where(update, new_shape, shape),
         empty,
     )
 
 
 def _joseph(shape, normal, Ph, g, r_over_g):
-    """P - (q/s) P h h^T P (eq 33) in the Joseph-like form (I - k h^T) P (I - k h^T)^T + r k k^T.
+    """``(J, bound on its rounding error)``: P - (q/s) P h h^T P (eq 33) in the Joseph-like
+    form J = (I - k h^T) P (I - k h^T)^T + r k k^T.
 
     By Sherman-Morrison, P - (q/s) P h h^T P = (P^{-1} + h h^T / r)^{-1} with r = d^2/q
     (d, q unnormalised; r = g d^2/q in the normalised variables used here), i.e. a Kalman update
@@ -124,12 +194,29 @@ def _joseph(shape, normal, Ph, g, r_over_g):
     to cancellation (relative error about eps g / r); here the shrunk axis comes from the
     non-negative term r k k^T and the rounding of (I - k h^T) enters only squared
     (docs/papers/smf.md, strip intersection).
+
+    For *any* gain k, J(k) = (P^-1 + h h^T/r)^-1 + (g + r)(k - k*)(k - k*)^T >= the exact
+    update, and a larger r only enlarges it: the gain's rounding costs nothing, and r is rounded
+    up (by gamma_8: its own four roundings and g^ against sqrt(g^)^2). What remains is the
+    rounding of forming J from the computed k (eq O5): the computed A^ = fl(I - k h^T) is
+    within u (|k| |h|^T + |A^|) of the exact I - k h^T, and the products add gamma_{2n}, so with
+    M = |k| |h|^T |P| |A^|^T, |J^ - J| <= gamma_{2n+4} (|A^| |P| |A^|^T + r |k| |k|^T) +
+    gamma_2 (M + M^T) to first order. Only |A^|, never |k h^T| twice, multiplies P: along a
+    direction the update shrinks, A^ is small and so is the bound.
     """
     n = shape.shape[-1]
-    r = g * r_over_g
+    dtype = shape.dtype
+    r = g * r_over_g * (1 + gamma(8, dtype))
     gain = Ph / _safe(g + r > 0, g + r)
-    reduce = jnp.eye(n, dtype=shape.dtype) - jnp.outer(gain, normal)
-    return reduce @ shape @ reduce.T + r * jnp.outer(gain, gain)
+    reduce = jnp.eye(n, dtype=dtype) - jnp.outer(gain, normal)
+    gain_gain = jnp.outer(gain, gain)
+    joseph = reduce @ shape @ reduce.T + r * gain_gain
+    abs_reduce = jnp.abs(reduce)
+    spread = jnp.outer(jnp.abs(gain), jnp.abs(normal)) @ jnp.abs(shape) @ abs_reduce.T  # M
+    error = gamma(2 * n + 4, dtype) * (
+        abs_reduce @ jnp.abs(shape) @ abs_reduce.T + r * jnp.abs(gain_gain)
+    ) + gamma(2, dtype) * (spread + spread.T)
+    return joseph, error
 
 
 def strips_ellipsoid(
@@ -191,9 +278,32 @@ def strips_ellipsoid(
 def contains(
     center: Float[Array, " n"], shape: Float[Array, "n n"], x: Float[Array, " n"]
 ) -> Bool[Array, ""]:
-    """Whether x lies in E(center, shape)."""
-    dx = x - center
-    return dx @ spd_solve(shape, dx) <= 1.0
+    """Whether x may lie in E(center, shape), rounded outward: False only where the exact x is
+    certainly outside (eq O6 of docs/papers/smf.md), so a point of the exact set is never
+    reported outside. Also True where ``shape`` is not certified positive definite.
+
+    With D = diag(sqrt(P_ii)), C = D^-1 P D^-1 and y = D^-1 (x - c), the quadratic form
+    t = y^T C^-1 y is computed by a Cholesky (or, n <= 2, closed-form) solve, which is exact for
+    some C + Delta C with ||Delta C||_2 <= n^2 gamma_{3n+1} (Higham Thm 10.4 and ||C||_2 <= n),
+    plus 2 u n for forming C. Then t_exact >= (t^ - gamma_n |y|^T |w|)(1 - ||Delta C|| /
+    lambda_min(C)), and the rounding of y (2u |y|) moves sqrt(t) by at most
+    2u ||y|| / sqrt(lambda_min(C)).
+    """
+    n = shape.shape[-1]
+    dtype = shape.dtype
+    u = unit_roundoff(dtype)
+    scale = jnp.sqrt(jnp.abs(jnp.diagonal(shape)))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    y = (x - center) / scale
+    w = spd_solve(shape / scale[:, None] / scale[None, :], y)
+    t = y @ w - gamma(n, dtype) * (jnp.abs(y) @ jnp.abs(w))
+    floor = correlation_floor(shape)
+    certified = floor > 0
+    floor = jnp.where(certified, floor, 1.0)
+    backward = (n**2 * gamma(3 * n + 1, dtype) + 2 * u * n) / floor
+    root_t = jnp.sqrt(jnp.maximum(t * (1 - backward), 0.0))
+    outside = root_t - 2 * (1 + u) * u * jnp.linalg.norm(y) / jnp.sqrt(floor) > 1 + 4 * u
+    return ~(certified & (backward < 1) & outside)
 
 
 def spd_solve(matrix: Float[Array, "n n"], vector: Float[Array, " n"]) -> Float[Array, " n"]:

@@ -56,10 +56,12 @@ from jaxest.setmembership.ellipsoid import (
     condition_number,
     contains,
     intersect_strip,
+    linear_image,
     max_condition,
     strips_ellipsoid,
 )
 from jaxest.setmembership.interval import remainder_bound
+from jaxest.setmembership.rounding import whole_space
 from jaxest.setmembership.status import SetStatus as Status
 
 
@@ -109,11 +111,6 @@ class BoundedNoiseModel(eqx.Module):
         if custom_bound is not None:
             return custom_bound(center, shape, u)
         return remainder_bound(lambda x: fn(x, u, k), center, shape)
-
-
-def whole_space(n: int, dtype) -> Float[Array, "n n"]:
-    """The shape matrix reported for a set that contains everything: +inf on the diagonal."""
-    return jnp.where(jnp.eye(n, dtype=bool), jnp.inf, 0.0).astype(dtype)
 
 
 class SMFState(eqx.Module):
@@ -242,7 +239,8 @@ class SetMembershipFilter(AbstractEstimator):
         """Eqs 7-17; returns ``(center, shape, remainder)``."""
         f_c, F = model.linearise(model.transition, center, u, k)
         alpha = model.remainder(model.transition, model.f_remainder, center, shape, u, k)
-        shape = add_box(F @ shape @ F.T, model.process_bound + alpha)  # eqs 15-17, 12-13
+        image, image_error = linear_image(F, shape)  # eq 15
+        shape = add_box(image, model.process_bound + alpha, image_error)  # eqs 16-17, 12-13
         return f_c, shape, alpha
 
     def predict(self, model: BoundedNoiseModel, prior: Ellipsoid, u=None, k=0) -> Ellipsoid:
