@@ -586,7 +586,7 @@ def estimate_record(data, input_std, output_std):
     the white-noise variance that carries the residuals' low-frequency power. The smoothed x(0|T),
     P(0|T) of that pass are the reported estimates and standard errors: for a constant seen through
     noise of long-run variance kappa_j R_j, P(0|T) is then the estimate's variance (C1), where the
-    first pass's assumed white residuals. For constant parameters of a linear(ised) model x(k|T)
+    first pass assumed white residuals. For constant parameters of a linear(ised) model x(k|T)
     is the same at every k and equals the last filtered estimate; the entry
     ``smoothed_minus_last_filtered`` (in standard errors) checks it. Returns a dict for
     summary.json and (model, prior, kappa) for the joint fit."""
