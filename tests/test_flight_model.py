@@ -211,3 +211,31 @@ def test_model_under_jit_vmap_grad_keeps_dtype(dtype):
     np.testing.assert_allclose(
         grad, np.sum(np.asarray(F, np.float64)[:3], axis=0), rtol=1e-4, atol=1e-6
     )
+
+
+def test_pinned_model_is_the_full_model_with_the_pinned_entries_set():
+    """f, h and G of the reduced model against the full model evaluated at E z + c, written out
+    here by index; unknown names raise ValueError."""
+    rng = np.random.default_rng(3)
+    full = flight.flight_model(
+        0.04, jnp.asarray([0.02, 0.02, 0.05, 0.001, 0.001, 0.001]), jnp.full(6, 0.01)
+    )
+    pinned = {"b_V": 0.3, "b_h": -4.0, "b_phi": 0.002}
+    reduced, names = flight.pin_parameters(full, pinned)
+    free = [i for i, s in enumerate(flight.STATES) if s not in pinned]
+    assert names == tuple(flight.STATES[i] for i in free) and len(names) == N_STATE - 3
+    x = np.concatenate([[70.0, 1.0, 4.0, 0.1, 0.05, 0.3, 1500.0], rng.normal(0, 0.01, 16)])
+    for p, v in pinned.items():
+        x[flight.STATES.index(p)] = v
+    z, u = jnp.asarray(x[free]), jnp.asarray(rng.normal(0, 0.1, 12))
+    np.testing.assert_allclose(reduced.f(z, u), full.f(jnp.asarray(x), u)[np.array(free)])
+    np.testing.assert_allclose(reduced.h(z, u), full.h(jnp.asarray(x), u))
+    G_full, Q = full.process_noise(jnp.asarray(x), u, 0)
+    G, Q_reduced = reduced.process_noise(z, u, 0)
+    np.testing.assert_allclose(G, G_full[np.array(free)])
+    np.testing.assert_array_equal(Q_reduced, Q)
+    _, F, _, _ = reduced.transition(z, u, 0)  # the pinned columns are gone from F
+    _, F_full, _, _ = full.transition(jnp.asarray(x), u, 0)
+    np.testing.assert_allclose(F, F_full[np.ix_(free, free)], atol=1e-12)
+    with pytest.raises(ValueError, match="pinned"):
+        flight.pin_parameters(full, {"u": 0.0})

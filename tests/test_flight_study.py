@@ -32,7 +32,12 @@ def test_quick_study_writes_the_summary(tmp_path):
     else:
         real = summary["real_data"]
         assert set(real["residual_rms"]) == {"V", "beta", "alpha", "theta", "phi", "h"}
-        assert set(real["parameters"]) == set(svd_ekf.PARAMETERS)
+        est = real["estimation"]["by_maneuver"]["elevator"]
+        free = set(svd_ekf.PARAMETERS) - set(svd_ekf.PINNED) - {"b_alpha"} | {"b_alpha_trim"}
+        assert set(est["parameters"]) == free and all(k >= 1 for k in est["colour_factor"].values())
+        assert est["smoothed_minus_last_filtered"] < 1e-3  # constant parameters: x(0|T) = x(T|T)
+        info = real["least_informed_full_model"]["elevator"]
+        assert info[0]["loadings"] == pytest.approx({"psi": 1.0})  # no heading measurement
         assert list(out.glob("*.png"))
     assert (out / "tables.md").exists()
 
@@ -88,27 +93,122 @@ def test_nees_groups_and_band_against_numpy_and_scipy():
     )
 
 
-def test_identifiability_finds_the_uninformed_combinations():
-    """A posterior that leaves b_h at its prior and (b_ax + b_theta)/sqrt 2 at 0.8 of its prior
-    std, and every other direction at 0.1: those two come first, with their loadings."""
-    from jaxest.systems.flight import N_KIN, PARAMETERS
+def test_record_information_is_the_observability_gramian_of_a_linear_model():
+    """Without process noise the RTS smoother's P(0|T) gives I = P(0|T)^-1 - P0^-1 = sum_k
+    Phi_k^T H^T R^-1 H Phi_k (computed here by the matrix powers): the eigen-pairs match, and a
+    state the measurements never see has information 0 and std ratio 1."""
+    import jax.numpy as jnp
 
-    rng = np.random.default_rng(0)
-    std = np.concatenate([np.ones(N_KIN), rng.uniform(0.01, 3.0, len(PARAMETERS))])
-    pair = np.zeros(len(PARAMETERS))
-    pair[[PARAMETERS.index("b_ax"), PARAMETERS.index("b_theta")]] = 1 / np.sqrt(2)
-    single = np.eye(len(PARAMETERS))[PARAMETERS.index("b_h")]
-    C = (
-        0.01 * np.eye(len(PARAMETERS))
-        + 0.63 * np.outer(pair, pair)
-        + 0.99 * np.outer(single, single)
-    )
-    P = np.eye(N_KIN + len(PARAMETERS))
-    P[N_KIN:, N_KIN:] = C * np.outer(std[N_KIN:], std[N_KIN:])
-    first, second, third = svd_ekf.identifiability(P, np.diag(std**2))
-    assert first["std_ratio"] == pytest.approx(1.0) and first["loadings"] == pytest.approx(
-        {"b_h": 1.0}
-    )
-    assert second["std_ratio"] == pytest.approx(0.8)
-    assert second["loadings"] == pytest.approx({"b_ax": 2**-0.5, "b_theta": 2**-0.5})
-    assert third["std_ratio"] == pytest.approx(0.1)
+    from jaxest import LinearGaussian, rts_smooth
+    from jaxest._priors import Gaussian
+    from jaxest._run import run as run_filter
+    from jaxest.filters import EKF
+
+    rng = np.random.default_rng(1)
+    F = np.array([[1.0, 0.1, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.9]])
+    H = np.array([[1.0, 0.0, 0.0]])  # the third state is never measured
+    R, P0, T = np.array([[0.2]]), np.diag([4.0, 1.0, 9.0]), 40
+    with jax.enable_x64(True):
+        model = LinearGaussian(jnp.asarray(F), jnp.asarray(H), jnp.zeros((3, 3)), jnp.asarray(R))
+        ys = jnp.asarray(rng.normal(size=(T, 1)))
+        prior = Gaussian(jnp.zeros(3), jnp.asarray(P0))
+        smooth = rts_smooth(model, run_filter(EKF(), model, ys, prior=prior))
+        info = svd_ekf.record_information(P0, smooth.cov[0], ("x", "v", "z"), count=3)
+    powers = [np.linalg.matrix_power(F, k) for k in range(T)]
+    gramian = sum(Phi.T @ H.T @ np.linalg.inv(R) @ H @ Phi for Phi in powers)
+    S = np.sqrt(np.diag(P0))
+    expect = np.sort(np.linalg.eigvalsh(np.outer(S, S) * gramian))
+    np.testing.assert_allclose([c["information"] for c in info], expect, rtol=1e-6, atol=1e-9)
+    assert info[0]["loadings"] == pytest.approx({"z": 1.0}) and info[0]["std_ratio"] == 1.0
+    np.testing.assert_allclose(info[1]["std_ratio"], 1 / np.sqrt(1 + expect[1]))
+
+
+def test_long_run_variance_ratio_of_an_ar1_series():
+    """kappa -> (1 + a) / (1 - a) for AR(1) noise with coefficient a (Bartlett bias
+    2 a / ((1 - a)^2 (L + 1)) subtracted), 1 for white noise; bad lags raise ValueError."""
+    rng = np.random.default_rng(2)
+    n, a, lag = 400_000, 0.6, 100
+    white = rng.normal(size=(n, 2))
+    ar = np.empty(n)
+    ar[0] = white[0, 0]
+    for k in range(1, n):
+        ar[k] = a * ar[k - 1] + white[k, 0]
+    kappa = svd_ekf.long_run_variance_ratio(np.stack([ar, white[:, 1]], axis=1), lag)
+    bartlett = (1 + a) / (1 - a) - 2 * a / ((1 - a) ** 2 * (lag + 1))
+    assert kappa[0] == pytest.approx(bartlett, rel=0.05)
+    assert kappa[1] == pytest.approx(1.0, abs=0.05)
+    with pytest.raises(ValueError, match="max_lag"):
+        svd_ekf.long_run_variance_ratio(white[:10], 10)
+
+
+def test_colour_factors_whiten_by_the_innovation_variance_and_floor_at_one():
+    """The factor of a channel is (C1) of innovation / sqrt(S_jj) over the rows where every channel
+    was measured: scaling a channel's innovations and S together leaves it; an anti-correlated
+    channel gets 1."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(4)
+    T, rate = 2000, 25.0
+    e = rng.normal(size=(T, 2))
+    smooth = np.convolve(e[:, 0], np.ones(5) / 5, mode="same")  # positively correlated
+    alternating = e[:, 1] - np.roll(e[:, 1], 1)  # negatively correlated: kappa < 1
+    innovation = np.stack([10.0 * smooth, alternating], axis=1)
+    S = np.broadcast_to(np.diag([100.0, 1.0]), (T, 2, 2))
+    ys = np.zeros((T, 2))
+    ys[-3:, 1] = np.nan  # the last rows are left out
+    result = SimpleNamespace(innovation=innovation, innovation_cov=S)
+    kappa = svd_ekf.colour_factors(result, ys, rate)
+    expect = svd_ekf.long_run_variance_ratio(smooth[:-3, None], int(svd_ekf.RESIDUAL_LAG_S * rate))
+    np.testing.assert_allclose(kappa, [expect[0], 1.0])
+    assert kappa[0] > 3
+
+
+def test_joint_estimate_is_the_batch_posterior_of_a_linear_case():
+    """Two records y_mk = x_m + k theta + v_mk (x_m each record's own constant, theta shared):
+    running the filter through them in turn gives the Gaussian posterior of theta given both,
+    computed here by batch least squares on (x_1, x_2, theta) with their prior."""
+    import jax.numpy as jnp
+
+    from jaxest import LinearGaussian
+    from jaxest._priors import Gaussian
+
+    rng = np.random.default_rng(5)
+    F, H, r = np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[1.0, 0.0]]), 0.3
+    prior_std = np.array([2.0, 0.5])  # x_m, theta
+    lengths, theta = (30, 20), 0.2
+    starts = (1.0, -2.0)
+    ys = [
+        x0 + theta * np.arange(n) + r * rng.normal(size=n)
+        for x0, n in zip(starts, lengths, strict=True)
+    ]
+    with jax.enable_x64(True):
+        model = LinearGaussian(jnp.asarray(F), jnp.asarray(H), jnp.zeros((2, 2)), jnp.eye(1) * r**2)
+        prior = Gaussian(jnp.zeros(2), jnp.diag(jnp.asarray(prior_std) ** 2))
+        runs = [(model, jnp.asarray(y)[:, None], None, prior) for y in ys]
+        mean, cov = svd_ekf.joint_estimate(runs, 1)
+    A = np.zeros((sum(lengths), 3))  # columns x_1, x_2, theta
+    A[: lengths[0], 0] = 1.0
+    A[lengths[0] :, 1] = 1.0
+    A[:, 2] = np.concatenate([np.arange(n) for n in lengths])
+    info = A.T @ A / r**2 + np.diag(1 / np.array([2.0, 2.0, 0.5]) ** 2)
+    post_cov = np.linalg.inv(info)
+    post_mean = post_cov @ A.T @ np.concatenate(ys) / r**2
+    np.testing.assert_allclose(float(mean[0]), post_mean[2], rtol=1e-6)
+    np.testing.assert_allclose(float(cov[0, 0]), post_cov[2, 2], rtol=1e-6)
+
+
+def test_trim_reparametrisation_moves_the_alpha_offset_to_the_trim_angle():
+    """b_alpha_trim = b_alpha + lam_alpha alpha_trim with variance var_b + a^2 var_lam +
+    2 a cov(b, lam), written out; the other entries are unchanged."""
+    rng = np.random.default_rng(6)
+    names = ("u", "b_alpha", "lam_alpha", "b_q")
+    A = rng.normal(size=(4, 4))
+    cov, mean = A @ A.T, rng.normal(size=4)
+    new_mean, new_cov, new_names = svd_ekf.trim_reparametrised(mean, cov, names)
+    a = svd_ekf.ALPHA_TRIM
+    assert new_names == ("u", "b_alpha_trim", "lam_alpha", "b_q")
+    assert new_mean[1] == pytest.approx(mean[1] + a * mean[2])
+    assert new_cov[1, 1] == pytest.approx(cov[1, 1] + a**2 * cov[2, 2] + 2 * a * cov[1, 2])
+    keep = [0, 2, 3]
+    np.testing.assert_allclose(new_mean[keep], mean[keep])
+    np.testing.assert_allclose(new_cov[np.ix_(keep, keep)], cov[np.ix_(keep, keep)])

@@ -36,6 +36,7 @@ from jaxest.plot import plt, save
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.setmembership.fdi import chi_square_threshold
+from jaxest.smoothers import rts_smooth
 from jaxest.systems import flight, flight_data, flight_sim as sim
 from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
 from jaxest.tune import fit
@@ -58,30 +59,27 @@ OBSERVABLE_RATIO = 0.5
 STATE_UNITS = {"u": 1, "v": 1, "w": 1, "phi": 1 / DEG, "theta": 1 / DEG, "psi": 1 / DEG, "h": 1}
 PARAMETER_UNITS = np.array([1, 1, 1, 1 / DEG, 1 / DEG, 1 / DEG, 1, 1 / DEG, 1 / DEG, 1 / DEG,
                             1 / DEG, 1, 1, 1, 1, 1])  # fmt: skip
+#: report units of each parameter by name (b_alpha_trim: see trim_reparametrised)
+UNITS = dict(zip(PARAMETERS, PARAMETER_UNITS, strict=True)) | {"b_alpha_trim": 1 / DEG}
 OUTPUT_UNITS = np.array([1, 1 / DEG, 1 / DEG, 1 / DEG, 1 / DEG, 1])
 #: HFB-320 noise levels of ../shared/data/README.md in output units (V m/s, angles deg)
 HFB320_NOISE = {"V": 0.13, "alpha": 0.057, "theta": 0.025}
-#: why the sensor parameters estimated on different maneuvers need not agree within their
-#: standard deviations (the summary lists those that do)
-BIAS_AGREEMENT_NOTE = (
-    "On the ATTAS records each maneuver's parameters are compared with the filter's formal standard "
-    "deviations, which assume an exact model and white noise. What does not agree: (1) parameters "
-    "that one maneuver fixes only along a nearly collinear direction: bias and scale factor of a "
-    "channel that barely moves (b_V/lam_V, b_h/lam_h, b_alpha/lam_alpha), b_phi with b_ay while the "
-    "bank angle stays near zero (the elevator maneuver puts b_phi degrees off), b_theta with b_ax "
-    "and b_V through gravity; small model errors move them far along that direction. (2) b_p is "
-    "resolved to about 0.003 deg/s and differs between records by up to 0.02 deg/s, a normal "
-    "change of gyro bias between separate flights or power cycles: the model's constant bias holds "
-    "within a record, not across records. (3) The pressure-altitude error depends on the flight "
-    "condition, not only on a bias and a scale factor. (4) In the aileron record the phi innovation "
-    "follows the bank angle (about 1.7 % of phi, up to 0.9 deg), an error no parameter of eq 28 "
-    "describes (roll-gyro scale factor or attitude-reference error); it pulls b_p, b_r and b_phi. "
-    "The tuned input noise (a_x, a_z far above accelerometer noise) shows unmodelled air-relative "
-    "motion too, but earth-axis wind states (random walks) made only the flow-angle parameters "
-    "agree, by widening their sigmas. Even on flights simulated from the filter's own discrete "
-    "model the EKF's NEES stays above 23 by most of what it exceeds on the simulator (the own-model "
-    "rows): the formal sigmas are too small mainly because the EKF approximates the nonlinear "
-    "model, not because the simulator differs from it."
+#: what the between-record comparison of the ATTAS estimates shows (numbers in summary.json and
+#: docs/papers/svd_ekf.md)
+AGREEMENT_NOTE = (
+    "Estimates are RTS-smoothed with b_V, b_h, b_phi and b_theta pinned at 0 and the alpha offset "
+    "taken at alpha_trim; standard errors from the pass whose R carries each channel's residual "
+    "colour factor. Pairs are compared where both records identify the parameter (posterior/prior "
+    "std < 0.5). Where they disagree beyond 3 s.e.: the sideslip vane's bias and scale factor "
+    "between the aileron and the rudder record (the model's beta_m has no term for what differs "
+    "between a rolling and a yawing maneuver, e.g. sidewash or vane dynamics), and b_alpha_trim by "
+    "about 0.1 deg between the elevator and aileron records. The scale factor lam_alpha exceeds "
+    "0.15 only on the lateral records, where alpha stays within 0.2 deg (std) of trim and its "
+    "posterior std is half its prior's; the elevator record and the joint fit give |lam_alpha| < "
+    "0.07. In the aileron record the phi innovation follows the bank angle (about 1.7 % of phi), "
+    "an error no parameter of eq 28 describes; it pulls b_p and b_r. Even on flights simulated "
+    "from the filter's own discrete model the EKF's NEES exceeds 23, so formal standard errors "
+    "are somewhat small before any correction for coloured residuals."
 )
 
 
@@ -439,35 +437,47 @@ def residual_rms(data, result, model, inputs, settle):
     return as_dict(innov), as_dict(filt), post
 
 
-def parameter_table(result):
-    """Final estimate and standard deviation of every parameter, in report units."""
-    mean = np.asarray(result.mean[-1, N_KIN:]) * PARAMETER_UNITS
-    std = np.sqrt(np.diag(np.asarray(result.cov[-1]))[N_KIN:]) * PARAMETER_UNITS
-    return {p: {"value": float(mean[i]), "std": float(std[i])} for i, p in enumerate(PARAMETERS)}
+def parameter_table(mean, cov, names):
+    """Estimate and standard deviation of every sensor parameter among ``names`` (the entries of
+    ``mean`` / ``cov``; kinematic states are left out), in report units."""
+    std = np.sqrt(np.diag(np.asarray(cov)))
+    return {
+        p: {"value": float(mean[i] * UNITS[p]), "std": float(std[i] * UNITS[p])}
+        for i, p in enumerate(names)
+        if p in UNITS
+    }
 
 
 #: loadings below this are left out of an identifiability combination
 LOADING_SHOWN = 0.2
 
 
-def identifiability(final_cov, prior_cov, count: int = 3) -> list[dict]:
-    """The sensor-parameter combinations a record leaves least identified: the eigenvectors v of
-    C = S^-1 P_pp S^-1 (P_pp the parameters' block of the final filtered covariance, S their
-    prior standard deviations) with the largest eigenvalues. An eigenvalue is the ratio of
-    posterior to prior variance of the combination v^T S^-1 p: near 1 the record did not inform
-    it at all (e.g. b_h, which the altitude measurement cannot tell from the initial altitude).
-    Returns ``count`` combinations, each with its posterior/prior std ratio (the square root)
-    and the loadings of magnitude at least ``LOADING_SHOWN``, largest first."""
-    std = np.sqrt(np.diag(np.asarray(prior_cov, np.float64))[N_KIN:])
-    P = np.asarray(final_cov, np.float64)[N_KIN:, N_KIN:]
-    ratio, vectors = np.linalg.eigh(P / np.outer(std, std))
+def record_information(prior_cov, smoothed_cov0, names, count: int = 4) -> list[dict]:
+    """The combinations of the initial state x_0 (kinematic states and sensor parameters) that a
+    record informs least. For a linear(ised) Gaussian model the RTS smoother's P(0|T) is the
+    posterior covariance of x_0 given all measurements, so the information the record carries
+    about x_0 is its Fisher information
+
+        I = P(0|T)^-1 - P0^-1                                                              (F1)
+
+    (without process noise, the observability Gramian sum_k Phi_k^T H_k^T R^-1 H_k Phi_k,
+    Phi_k = F_{k-1} ... F_0). In units of the prior standard deviations S, Ib = S I S, an
+    eigenvector v of Ib with eigenvalue e is the combination v^T S^-1 x_0 whose posterior/prior
+    variance ratio is 1 / (1 + e): e << 1, the record cannot separate it. Returns the ``count``
+    smallest eigenvalues, each with that std ratio and the loadings of magnitude at least
+    ``LOADING_SHOWN`` on ``names`` (the states of x_0), largest first."""
+    P0 = np.asarray(prior_cov, np.float64)
+    std = np.sqrt(np.diag(P0))
+    info = np.linalg.inv(np.asarray(smoothed_cov0, np.float64)) - np.linalg.inv(P0)
+    values, vectors = np.linalg.eigh(np.outer(std, std) * info)
     out = []
-    for i in np.argsort(ratio)[::-1][:count]:
+    for i in np.argsort(values)[:count]:
         v = vectors[:, i] * np.sign(vectors[np.argmax(np.abs(vectors[:, i])), i])
         shown = [j for j in np.argsort(-np.abs(v)) if abs(v[j]) >= LOADING_SHOWN]
         out.append({
-            "std_ratio": float(np.sqrt(max(ratio[i], 0.0))),
-            "loadings": {PARAMETERS[j]: float(v[j]) for j in shown},
+            "information": float(values[i]),
+            "std_ratio": float(1.0 / np.sqrt(1.0 + max(values[i], 0.0))),
+            "loadings": {names[j]: float(v[j]) for j in shown},
         })  # fmt: skip
     return out
 
@@ -482,6 +492,212 @@ def bias_agreement(parameters):
             for i, a in enumerate(names) for b in names[i + 1:]}
         for p in parameters[names[0]]
     }  # fmt: skip
+
+
+# ---------------------------------------------------------------------------------------------
+# real data: pinned parameters, smoothed estimates, coloured residuals, the joint fit
+
+#: sensor parameters pinned at 0 on the real records, from the Fisher information of the full
+#: model (record_information; summary.json least_informed_full_model, in prior variances):
+#: b_V, a constant airspeed offset, which the integrated accelerometers cannot tell from the
+#: initial speed (0.006-0.06, std ratio 0.97-1.00 on every ATTAS record); b_h, an altitude offset,
+#: the same against the initial altitude (0.006-0.52, with u and h); b_phi, a bank-angle offset,
+#: the same against the initial bank angle except through g sin(phi) in v', where it trades with
+#: b_ay (0.15 on the elevator record). b_theta is pinned because the records fix only its
+#: difference from the alpha offset (the flight-path angle theta - alpha enters h'): free, it
+#: came out 0.44 +- 0.27, -0.60 +- 0.07 and -0.24 +- 0.11 deg on the three records, correlated
+#: 0.87-0.99 with b_alpha, while the alpha offset at trim minus b_theta agreed within 0.1 deg.
+#: Pinned, the initial states absorb them: u, h, phi and theta are referenced to the airspeed,
+#: altitude and attitude sensors, and b_alpha is the alpha vane's offset relative to the pitch
+#: attitude reference, which is what a flight-path reconstruction without an independent
+#: reference can claim.
+PINNED = {"b_V": 0.0, "b_h": 0.0, "b_phi": 0.0, "b_theta": 0.0}
+#: the Bartlett window of the residual autocorrelation (s), the length of the maneuvers' longest
+#: input pulses; residual power at longer periods is not counted
+RESIDUAL_LAG_S = 2.0
+#: the angle of attack (rad) at which the alpha-vane offset is reported (the ATTAS records' mean,
+#: 2.1-2.3 deg): b_alpha_trim = b_alpha + lam_alpha alpha_trim, the offset of alpha_m there
+ALPHA_TRIM = 2.2 * DEG
+
+
+def trim_reparametrised(mean, cov, names):
+    """(mean, cov, names) with b_alpha replaced by b_alpha_trim = b_alpha + lam_alpha alpha_trim
+    (:data:`ALPHA_TRIM`): alpha_m = (1 + lam_alpha) alpha + b_alpha (eq 28) is the same as
+    (1 + lam_alpha)(alpha - alpha_trim) + alpha_trim + b_alpha_trim. Where alpha barely leaves
+    its trim value (the lateral records: std 0.16-0.21 deg) the data fix b_alpha_trim and leave
+    b_alpha and lam_alpha free along b_alpha = b_alpha_trim - lam_alpha alpha_trim (correlation
+    near -0.9). A linear change of variables, x' = M x, cov' = M cov M^T: for the (affine
+    invariant) EKF and RTS smoother it is the same as estimating b_alpha_trim directly."""
+    names = list(names)
+    M = np.eye(len(names))
+    M[names.index("b_alpha"), names.index("lam_alpha")] = ALPHA_TRIM
+    names[names.index("b_alpha")] = "b_alpha_trim"
+    return M @ np.asarray(mean), M @ np.asarray(cov) @ M.T, tuple(names)
+
+
+def long_run_variance_ratio(x, max_lag: int):
+    """Per column of ``x`` (T x m), the ratio of the long-run variance to the variance,
+
+        kappa = 1 + 2 sum_{l=1}^{L} (1 - l / (L + 1)) rho(l)                                (C1)
+
+    with rho the sample autocorrelation and Bartlett weights (Newey & West 1987), L = ``max_lag``.
+    A constant estimated from T samples of noise with this autocorrelation has kappa times the
+    variance it would have from white noise (T / kappa effective samples); kappa = (1 + a) / (1 - a)
+    for an AR(1) series with coefficient a, as L grows."""
+    x = np.asarray(x, np.float64)
+    if x.ndim != 2 or not 0 < max_lag < x.shape[0]:
+        raise ValueError(f"max_lag: expected 0 < max_lag < {x.shape[0]} on a T x m array, got "
+                         f"{max_lag} and shape {x.shape}")  # fmt: skip
+    x = x - x.mean(axis=0)
+    var = np.mean(x**2, axis=0)
+    lags = np.arange(1, max_lag + 1)
+    rho = np.stack([np.sum(x[lag:] * x[:-lag], axis=0) / x.shape[0] for lag in lags])
+    return 1.0 + 2.0 * np.sum((1.0 - lags / (max_lag + 1))[:, None] * rho, axis=0) / var
+
+
+def colour_factors(result, ys, rate_hz):
+    """(C1) of every output channel's normalised innovation e_j / sqrt(S_jj) over the samples
+    where every channel was measured, floored at 1 (white-noise standard errors are never
+    reduced)."""
+    observed = np.all(np.isfinite(np.asarray(ys)), axis=1)
+    var = np.diagonal(np.asarray(result.innovation_cov), axis1=-2, axis2=-1)
+    normalised = np.asarray(result.innovation)[observed] / np.sqrt(var[observed])
+    return np.maximum(long_run_variance_ratio(normalised, int(RESIDUAL_LAG_S * rate_hz)), 1.0)
+
+
+def filter_record(model, data, prior, estimator=None):
+    """``estimator`` (default the SVD-EKF) over one record: the result and the interval inputs."""
+    inputs = flight.interval_inputs(jnp.asarray(data.inputs))
+    est = SVDEKF() if estimator is None else estimator
+    return run_filter(est, model, jnp.asarray(data.outputs), inputs=inputs, prior=prior), inputs
+
+
+def reduced_prior(data, pinned):
+    """:func:`real_prior` restricted to the states :func:`flight.pin_parameters` keeps."""
+    prior = real_prior(data)
+    keep = np.array([i for i, s in enumerate(flight.STATES) if s not in pinned])
+    return Gaussian(prior.mean[keep], prior.cov[np.ix_(keep, keep)])
+
+
+def estimate_record(data, input_std, output_std):
+    """The pinned model (:data:`PINNED`) on one record: a first filter pass for the innovations'
+    colour factors kappa_j (C1), then filter and RTS smoother with measurement noise R_j kappa_j,
+    the white-noise variance that carries the residuals' low-frequency power. The smoothed x(0|T),
+    P(0|T) of that pass are the reported estimates and standard errors: for a constant seen through
+    noise of long-run variance kappa_j R_j, P(0|T) is then the estimate's variance (C1), where the
+    first pass assumed white residuals. For constant parameters of a linear(ised) model x(k|T)
+    is the same at every k and equals the last filtered estimate; the entry
+    ``smoothed_minus_last_filtered`` (in standard errors) checks it. Returns a dict for
+    summary.json and (model, prior, kappa) for the joint fit."""
+    model_for_r = lambda std: flight.pin_parameters(
+        flight.flight_model(data.dt, jnp.asarray(input_std), jnp.asarray(std)), PINNED
+    )
+    model, names = model_for_r(output_std)
+    prior = reduced_prior(data, PINNED)
+    first, _ = filter_record(model, data, prior)
+    kappa = colour_factors(first, data.outputs, data.rate_hz)
+    model, _ = model_for_r(np.asarray(output_std) * np.sqrt(kappa))
+    result, inputs = filter_record(model, data, prior)
+    smooth = rts_smooth(model, result, inputs=inputs)
+    table_of = lambda mean, cov: parameter_table(*trim_reparametrised(mean, cov, names))
+    white, last = (table_of(r.mean[-1], r.cov[-1]) for r in (first, result))
+    table = table_of(smooth.mean[0], smooth.cov[0])
+    _, cov0, trim_names = trim_reparametrised(smooth.mean[0], smooth.cov[0], names)
+    _, prior_cov0, _ = trim_reparametrised(prior.mean, prior.cov, names)
+    std_ratio = np.sqrt(np.diag(cov0) / np.diag(prior_cov0))[N_KIN:]
+    entry = {
+        "colour_factor": {o: float(kappa[j]) for j, o in enumerate(OUTPUTS)},
+        "parameters": table,
+        "white_noise_std": {p: white[p]["std"] for p in table},
+        "smoothed_minus_last_filtered": max(
+            abs(table[p]["value"] - last[p]["value"]) / table[p]["std"] for p in table),
+        "std_ratio": {p: float(std_ratio[i]) for i, p in enumerate(trim_names[N_KIN:])},
+        "identified": [p for i, p in enumerate(trim_names[N_KIN:])
+                       if std_ratio[i] < OBSERVABLE_RATIO],
+        "least_informed": record_information(prior.cov, smooth.cov[0], names),
+        "residual_rms": smoothed_residual_rms(data, model, smooth, inputs),
+    }  # fmt: skip
+    return entry, (model, prior, kappa)
+
+
+def joint_estimate(runs, n_shared: int):
+    """One set of the last ``n_shared`` states (the constant parameters) from several records,
+    ``runs`` = [(model, ys, inputs, prior), ...]: the SVD-EKF runs through them in turn, each
+    record starting from its own prior for the other states and from the parameters' posterior
+    (mean and covariance block) that the previous record left. Records are independent given the
+    parameters, so for a linear model this is the Gaussian posterior of the parameters given all
+    records (p(theta | Y_1, Y_2) ~ p(Y_2 | theta) p(theta | Y_1)), which is also every record's
+    smoothed estimate of them. Returns the parameters' mean and covariance."""
+    mean = cov = None
+    for model, ys, inputs, prior in runs:
+        if mean is not None:
+            prior = Gaussian(prior.mean.at[-n_shared:].set(mean),
+                             prior.cov.at[-n_shared:, -n_shared:].set(cov))  # fmt: skip
+        result = run_filter(SVDEKF(), model, ys, inputs=inputs, prior=prior)
+        mean, cov = result.mean[-1, -n_shared:], result.cov[-1, -n_shared:, -n_shared:]
+    return mean, cov
+
+
+def joint_residuals(data, input_std, output_std, kappa, values):
+    """Smoothed residual RMS of one record with every sensor parameter held at ``values`` (the
+    joint estimate, a dict by name; :data:`PINNED` included): the 7 kinematic states only."""
+    full = flight.flight_model(data.dt, jnp.asarray(input_std),
+                               jnp.asarray(np.asarray(output_std) * np.sqrt(kappa)))  # fmt: skip
+    model, _ = flight.pin_parameters(full, values)
+    # the covariance-form EKF: for 7 states the SVD filters' Jacobi SVD takes XLA about 40 s to
+    # compile per record length, and in float64 both filters agree to rounding
+    result, inputs = filter_record(model, data, reduced_prior(data, values), EKF())
+    return smoothed_residual_rms(data, model, rts_smooth(model, result, inputs=inputs), inputs)
+
+
+def smoothed_residual_rms(data, model, smooth, inputs):
+    """RMS of y_k - h(x(k|T)) per output channel, in output units."""
+    computed = np.asarray(jax.vmap(model.h)(smooth.mean, inputs))
+    rms = np.sqrt(np.nanmean((data.outputs - computed) ** 2, axis=0)) * OUTPUT_UNITS
+    return {o: float(rms[i]) for i, o in enumerate(OUTPUTS) if np.isfinite(rms[i])}
+
+
+def real_estimation(records, input_std, output_std):
+    """Pinned, smoothed, colour-corrected estimates per ATTAS record and jointly, with residual
+    RMS, scale factors and the between-record agreement in corrected standard errors (of the
+    parameters that both records of a pair identify, and of each record with the joint fit)."""
+    per, fits = {}, {}
+    for m, d in records.items():
+        per[m], fits[m] = estimate_record(d, input_std, output_std)
+    out: dict = {"pinned": PINNED, "residual_lag_s": RESIDUAL_LAG_S,
+                 "alpha_trim_deg": ALPHA_TRIM / DEG, "by_maneuver": per}  # fmt: skip
+    if len(records) < 2:
+        return out
+    runs = [
+        (model, jnp.asarray(d.outputs), flight.interval_inputs(jnp.asarray(d.inputs)), prior)
+        for d, (model, prior, _) in zip(records.values(), fits.values(), strict=True)
+    ]
+    mean, cov = joint_estimate(runs, len(PARAMETERS) - len(PINNED))
+    free = [p for p in PARAMETERS if p not in PINNED]
+    joint = parameter_table(*trim_reparametrised(mean, cov, free))
+    values = {p: float(mean[i]) for i, p in enumerate(free)} | PINNED
+    out["joint"] = {"parameters": joint, "residual_rms": {
+        m: joint_residuals(d, input_std, output_std, fits[m][2], values)
+        for m, d in records.items()}}  # fmt: skip
+    tables = {m: e["parameters"] for m, e in per.items()}
+    pairs = bias_agreement(tables)
+    both = lambda p, pair: all(p in per[m]["identified"] for m in pair.split("-"))
+    out["agreement_se"] = {
+        p: {pair: z for pair, z in v.items() if both(p, pair)} for p, v in pairs.items()
+    }
+    out["agreement_se"] = {p: v for p, v in out["agreement_se"].items() if v}
+    out["disagreeing_3se"] = [p for p, v in out["agreement_se"].items() if max(v.values()) > 3]
+    out["joint_minus_maneuver_se"] = {
+        p: {m: abs(joint[p]["value"] - tables[m][p]["value"]) / tables[m][p]["std"]
+            for m in per if p in per[m]["identified"]} for p in joint
+    }  # fmt: skip
+    lam = [p for p in free if p.startswith("lam_")]
+    out["scale_factors"] = {p: {**{m: tables[m][p]["value"] for m in per},
+                                "joint": joint[p]["value"]} for p in lam}  # fmt: skip
+    out["scale_factors_within_0.15"] = all(
+        abs(v) <= 0.15 for d in out["scale_factors"].values() for v in d.values()
+    )
+    return out
 
 
 # ---------------------------------------------------------------------------------------------
@@ -560,7 +776,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     figures = () if quick else ((10, 1), (32, 2))  # --quick: only the real-data figure
     own_model = [c for c in conditions if c[0] == "elevator" and c[2] == "float64"]
     total = len(conditions) * len(FILTERS) + len(own_model) + len(figures)
-    total += (2 if quick else 6) if data_dir else 0
+    total += (3 if quick else 7) if data_dir else 0
     with Progress(NAME, total) as progress:
         truths = {}
         for maneuver, rate, dtype_name in conditions:
@@ -676,13 +892,12 @@ def real_data_part(out, data_dir, quick, tune_steps, progress):  # noqa: C901
             "data": "ATTAS elevator, flow angles aligned",
         }  # fmt: skip
         progress.advance("real-data tuning")
-    params, residuals, residuals_untuned, residuals_unaligned = {}, {}, {}, {}
-    identifiable = {}
+    residuals, residuals_untuned, residuals_unaligned, information = {}, {}, {}, {}
     for m, d in records.items():
         result, model, inputs = reconstruct(d, in_std, out_std)
         innov, filt, computed = residual_rms(d, result, model, inputs, settle)
-        params[m] = parameter_table(result)
-        identifiable[m] = identifiability(result.cov[-1], real_prior(d).cov)
+        smooth = rts_smooth(model, result, inputs=inputs)
+        information[m] = record_information(real_prior(d).cov, smooth.cov[0], flight.STATES)
         residuals[m] = {"innovation_rms": innov, "filtered_rms": filt,
                         "diverged": bool(np.any(np.asarray(result.status) != 0))}  # fmt: skip
         r_raw, model_raw, inputs_raw = reconstruct(raw[m], in_std, out_std)
@@ -693,22 +908,16 @@ def real_data_part(out, data_dir, quick, tune_steps, progress):  # noqa: C901
         plot_states_and_fits(out / f"fig_attas_{m}.png", d.t, None, np.asarray(result.mean),
                              d.outputs, computed, f"SVD-EKF on ATTAS {m} maneuver (25 Hz)")  # fmt: skip
         progress.advance(f"ATTAS {m}")
-    report["parameters"] = params["elevator"]
-    report["parameters_by_maneuver"] = params
-    report["least_identified"] = identifiable
+    report["least_informed_full_model"] = information
+    report["estimation"] = real_estimation(records, in_std, out_std)
+    progress.advance("ATTAS pinned, smoothed and joint estimates")
     report["residual_rms"] = residuals["elevator"]["innovation_rms"]
     report["residuals_by_maneuver"] = residuals
     report["innovation_rms_untuned"] = residuals_untuned
     report["innovation_rms_unaligned"] = residuals_unaligned
     report["hfb320_noise_x3"] = {k: 3 * v for k, v in HFB320_NOISE.items()}
-    if len(params) > 1:
-        agreement = bias_agreement(params)
-        report["bias_agreement_sigma"] = agreement
-        report["parameters_agreeing_within"] = {
-            f"{k}_sigma": [p for p, pairs in agreement.items() if max(pairs.values()) <= k]
-            for k in (1, 2, 3)
-        }
-        report["bias_agreement_note"] = BIAS_AGREEMENT_NOTE
+    if len(records) > 1:
+        report["agreement_note"] = AGREEMENT_NOTE
     if not quick:
         report["hfb320"] = reconstruct_hfb320(out, data_dir)
         progress.advance("HFB-320")
@@ -724,7 +933,7 @@ def reconstruct_hfb320(out, data_dir):
     innov, filt, computed = residual_rms(hfb, result, model, inputs, int(SETTLE_S * hfb.rate_hz))
     plot_states_and_fits(out / "fig_hfb320.png", hfb.t, None, np.asarray(result.mean), hfb.outputs,
                          computed, "SVD-EKF on HFB-320 elevator record (10 Hz)")  # fmt: skip
-    return {"parameters": parameter_table(result), "innovation_rms": innov, "filtered_rms": filt,
+    return {"parameters": parameter_table(result.mean[-1], result.cov[-1], flight.STATES), "innovation_rms": innov, "filtered_rms": filt,
             "sensor_delays_s": {o: float(delays[OUTPUTS.index(o)]) for o in DELAYED_OUTPUTS}}  # fmt: skip
 
 
@@ -742,11 +951,29 @@ def write_tables(out, summary, rows):
                                                  for p in PARAMETERS], floatfmt=".2f")  # fmt: skip
     if "real_data" in summary:
         real = summary["real_data"]
-        text += "\n## ATTAS: estimated parameters (value ± std; m/s^2, deg/s, m/s, deg, m)\n\n"
-        by = real["parameters_by_maneuver"]
+        est = real["estimation"]
+        by = {m: e["parameters"] for m, e in est["by_maneuver"].items()}
+        if "joint" in est:
+            by["joint"] = est["joint"]["parameters"]
+        pinned = ", ".join(est["pinned"])
+        text += (
+            "\n## ATTAS: sensor parameters, RTS-smoothed, standard errors corrected for "
+            f"coloured residuals ({pinned} pinned at 0; m/s^2, deg/s, m/s, deg, m)\n\n"
+        )
         text += markdown_table(["parameter", *by], [
             [p, *[f"{by[m][p]['value']:.4g} ± {by[m][p]['std']:.2g}" for m in by]]
-            for p in PARAMETERS])  # fmt: skip
+            for p in by[next(iter(by))]])  # fmt: skip
+        text += "\n## ATTAS: smoothed residual RMS per channel (m/s, deg, m)\n\n"
+        rows = [[m, "own parameters", *[e["residual_rms"].get(o) for o in OUTPUTS]]
+                for m, e in est["by_maneuver"].items()]  # fmt: skip
+        if "joint" in est:
+            rows += [[m, "joint parameters", *[r.get(o) for o in OUTPUTS]]
+                     for m, r in est["joint"]["residual_rms"].items()]  # fmt: skip
+            text += markdown_table(["maneuver", "parameters", *OUTPUTS], rows)
+            text += f"\nDisagreeing by more than 3 s.e.: {est['disagreeing_3se']}. "
+            text += real["agreement_note"] + "\n"
+        else:
+            text += markdown_table(["maneuver", "parameters", *OUTPUTS], rows)
         delays = ", ".join(f"{c} {v:.2f} s" for c, v in real["sensor_delays_s"].items())
         text += f"\n## ATTAS: innovation RMS (m/s, deg, m); flow-vane delays {delays}\n\n"
         res = real["residuals_by_maneuver"]
@@ -759,14 +986,14 @@ def write_tables(out, summary, rows):
         ):
             rows += [[m, label, *[v[o] for o in OUTPUTS]] for m, v in real[key].items()]
         text += markdown_table(["maneuver", "data, noise", *OUTPUTS], rows)
-        if "parameters_agreeing_within" in real:
-            agree = real["parameters_agreeing_within"]
-            text += f"\nAgreeing between maneuvers within 2 sigma: {agree['2_sigma']}. "
-            text += real["bias_agreement_note"] + "\n"
-        text += "\n## ATTAS: least identified parameter combinations (posterior / prior std)\n\n"
-        text += markdown_table(["maneuver", "std ratio", "combination (loadings >= 0.2)"], [
-            [m, f"{c['std_ratio']:.2f}",
+        text += (
+            "\n## ATTAS: least informed combinations of the initial state, full model "
+            "(Fisher information in prior variances; posterior / prior std)\n\n"
+        )
+        text += markdown_table(["maneuver", "information", "std ratio",
+                                "combination (loadings >= 0.2)"], [
+            [m, f"{c['information']:.3g}", f"{c['std_ratio']:.2f}",
              ", ".join(f"{v:+.2f} {p}" for p, v in c["loadings"].items())]
-            for m, combos in real["least_identified"].items() for c in combos
+            for m, combos in real["least_informed_full_model"].items() for c in combos
         ])  # fmt: skip
     (out / "tables.md").write_text(text)

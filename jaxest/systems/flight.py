@@ -55,6 +55,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from jaxest.models import NonlinearGaussian
@@ -225,3 +226,67 @@ def body_velocity(speed, alpha, beta):
         ],
         axis=-1,
     )
+
+
+class _Embedding(eqx.Module):
+    """x = the full state with the free entries ``free`` set to z and the rest at ``full``."""
+
+    free: tuple[int, ...] = eqx.field(static=True)
+    full: Float[Array, " n"]
+
+    def __call__(self, z):
+        return self.full.at[np.asarray(self.free)].set(z)
+
+
+class _PinnedTransition(eqx.Module):
+    model: NonlinearGaussian
+    embed: _Embedding
+
+    def __call__(self, z, u):
+        return self.model.f(self.embed(z), u)[np.asarray(self.embed.free)]
+
+
+class _PinnedObservation(eqx.Module):
+    model: NonlinearGaussian
+    embed: _Embedding
+
+    def __call__(self, z, u):
+        return self.model.h(self.embed(z), u)
+
+
+class _PinnedNoiseGain(eqx.Module):
+    model: NonlinearGaussian
+    embed: _Embedding
+
+    def __call__(self, z, u):
+        return self.model.process_noise(self.embed(z), u, 0)[0][np.asarray(self.embed.free)]
+
+
+def pin_parameters(model: NonlinearGaussian, pinned: dict[str, float]):
+    """``model`` with the sensor parameters named in ``pinned`` held at the given values and
+    removed from the state: the reduced state z holds the other entries of x^a (in order),
+    x^a = E z + c with E the columns of the identity at the free entries and c the pinned values,
+    and
+
+        f_z(z, u) = E^T f(E z + c, u),   h_z(z, u) = h(E z + c, u),   G_z = E^T G(E z + c, u).
+
+    Exact, since parameters are constants (their rows of f return them unchanged). Returns the
+    reduced model and the names of its states."""
+    unknown = [p for p in pinned if p not in PARAMETERS]
+    if unknown:
+        raise ValueError(f"pinned: {unknown} are not sensor parameters {PARAMETERS}")
+    free = tuple(i for i, s in enumerate(STATES) if s not in pinned)
+    full = (
+        jnp.zeros(N_STATE, jnp.result_type(model.Q))
+        .at[np.array([STATES.index(p) for p in pinned], dtype=int)]
+        .set(jnp.asarray(list(pinned.values()), jnp.result_type(model.Q)))
+    )
+    embed = _Embedding(free, full)
+    reduced = NonlinearGaussian(
+        f=_PinnedTransition(model, embed),
+        h=_PinnedObservation(model, embed),
+        Q=model.Q,
+        R=model.R,
+        noise_gain=_PinnedNoiseGain(model, embed),
+    )
+    return reduced, tuple(STATES[i] for i in free)
