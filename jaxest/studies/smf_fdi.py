@@ -141,7 +141,7 @@ def bank_monte_carlo_function(model, prior, simulate, fault_bias, bank: FilterBa
     """A jitted ``keys -> (inconsistent, contains)``, each (runs, 2, F, T): every filter of
     ``bank`` over a fault-free run (scenario 0) and the same run with ``fault_bias`` (T, m) added
     to the measurements (scenario 1), the same noise draws in both; ``simulate(key, bias) ->
-    (states, ys)``, ``prior`` the set at the first measurement. Runs are vmapped in batches
+    (states, ys)``, ``prior`` the set at the first measurement. Runs are vmapped
     (:func:`batched_over_runs`)."""
     biases = jnp.stack([jnp.zeros_like(fault_bias), fault_bias])
 
@@ -253,20 +253,21 @@ def _one_run(key, biases, closed_form_bound=False):
     return jax.vmap(scenario)(biases)
 
 
-#: runs vectorised together. One vmap over all 200 runs hung in about half the executions on a
-#: 2-core CPU (every XLA thread waiting, after compilation; cause not found); vmapped batches of
-#: 25 inside a ``lax.map`` never did in our trials and run as fast.
-RUN_BATCH = 25
-
-
 def batched_over_runs(one_run):
-    """jit of ``keys -> stacked one_run(key)``: vmap within batches of ``RUN_BATCH`` runs."""
-    return jax.jit(lambda keys: jax.lax.map(one_run, keys, batch_size=RUN_BATCH))
+    """jit of ``keys -> stacked one_run(key)``: one ``vmap`` over every run.
+
+    Earlier versions ran 25 runs at a time inside a ``lax.map``: one vmap over all 200 runs hung
+    in about half the executions on a 2-core CPU. The cause was jaxlib 0.10's batched LAPACK
+    calls (the EKF's and the filters' small factorisations), two of which running at once can
+    deadlock XLA's CPU thread pool (:mod:`jaxest.montecarlo`). The filters now factor their 2x2
+    and small matrices in fused ``jnp`` code, and ``tests/test_smf_fdi_batch.py`` checks that the
+    compiled study contains no LAPACK call and runs 20 times in a row under a time limit."""
+    return jax.jit(jax.vmap(one_run))
 
 
 def monte_carlo_function(closed_form_bound: bool = False):
     """A jitted ``keys -> (inconsistent, contains, unbounded, ekf_alarms)``, each shaped
-    (runs, scenarios, filters or rules, steps): the whole Monte Carlo, vmapped in batches."""
+    (runs, scenarios, filters or rules, steps): the whole Monte Carlo under one vmap."""
     biases = scenario_biases()
     return batched_over_runs(lambda key: _one_run(key, biases, closed_form_bound))
 
@@ -414,7 +415,7 @@ def automatic_bound_function():
 
     def check(keys):
         per_run = lambda k: jax.vmap(lambda b: scenario(k, b))(biases)
-        flags, relative = jax.lax.map(per_run, keys, batch_size=RUN_BATCH)
+        flags, relative = jax.vmap(per_run)(keys)
         states, ys = duffing.simulate(keys[0], biases[0])
         example = (
             states,

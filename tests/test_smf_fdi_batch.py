@@ -1,0 +1,48 @@
+"""The smf-fdi study's Monte Carlo runs its 200 runs under one ``vmap`` (issue 12): its compiled
+programs call no LAPACK kernel (jaxlib 0.10's CPU thread pool can deadlock on two concurrent
+batched LAPACK calls), and the whole study runs 20 times in a row within a time limit."""
+
+import re
+import subprocess
+import sys
+import textwrap
+
+import jax
+import pytest
+
+from jaxest.studies import smf_fdi
+
+REPEATS = 20
+TIME_LIMIT_S = 600
+
+
+def _custom_calls(fn, *args):
+    text = fn.lower(*args).compile().as_text()
+    return set(re.findall(r'custom_call_target="([^"]+)"', text))
+
+
+@pytest.mark.parametrize("closed_form_bound", [True, False])
+def test_compiled_study_calls_no_lapack(closed_form_bound):
+    keys = jax.random.split(jax.random.key(0), 8)
+    calls = _custom_calls(smf_fdi.monte_carlo_function(closed_form_bound), keys)
+    calls |= _custom_calls(smf_fdi.containment_stress_function(5.0), keys)
+    assert not [c for c in calls if "lapack" in c.lower()], calls
+
+
+def test_one_vmap_over_200_runs_repeats_without_hanging():
+    script = textwrap.dedent(f"""
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        from jaxest.studies import smf_fdi
+        study = smf_fdi.monte_carlo_function(closed_form_bound=True)
+        keys = jax.random.split(jax.random.key(0), 200)
+        first = jax.block_until_ready(study(keys))
+        for _ in range({REPEATS}):
+            again = jax.block_until_ready(study(keys))
+        assert all((a == b).all() for a, b in zip(first, again, strict=True))
+        print("ok")
+    """)
+    done = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=TIME_LIMIT_S
+    )
+    assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]
