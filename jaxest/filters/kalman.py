@@ -64,10 +64,10 @@ class KalmanFilter(AbstractGaussianFilter):
             self.closed_form_gradient and isinstance(model, LinearGaussian) and model.G is None
         ):
             return result
-        saved = all(getattr(result, name) is not None for name in NEEDED)
-        loglik = fisher_loglik(
-            result.loglik, model, prior, ys, inputs, ks, result if saved else None
-        )
+        needed = {name: getattr(result, name) for name in NEEDED}
+        saved = all(value is not None for value in needed.values())
+        filtered = FilterResult(result.final_state, **needed) if saved else None
+        loglik = fisher_loglik(result.loglik, model, prior, ys, inputs, ks, filtered)
         return eqx.tree_at(lambda r: r.final_state.loglik, result, loglik)
 
 
