@@ -34,10 +34,13 @@ measurement (:func:`~jaxest.filters.common.masked_measurement`), whose R has the
 and an identity elsewhere and whose H rows and innovation are zero there, so the missing rows
 add a constant and their entries of R, H, D and y_k get zero gradient, as in autodiff.
 
-Cost: one RTS smoother and a batched (not sequential) evaluation of (3) over the steps, against
-autodiff's reverse sweep through every step of the filter. Covariance gradients are symmetric:
-they are the derivatives along symmetric perturbations (the filter reads P0's upper triangle
-where autodiff's gradient need not be symmetric; their symmetric parts agree).
+(1) needs the filter's log-likelihood to be log p(y) exactly, which the Kalman filter's is on a
+linear-Gaussian model; models with a noise gain G are left to autodiff (G Q G^T may be singular,
+where (3) has no density). Cost: one RTS smoother and a batched (not sequential) evaluation of
+(3) over the steps, against autodiff's reverse sweep through every step of the filter.
+Covariance gradients are symmetric: they are the derivatives along symmetric perturbations (the
+filter uses P0 unsymmetrised, so autodiff's gradient for it need not be symmetric; the symmetric
+parts agree).
 
 The rule is a ``custom_jvp``: its tangent is the inner product of (4) with the parameters'
 tangents, linear in them, so reverse mode (``grad``) transposes it and forward mode (``jvp``,

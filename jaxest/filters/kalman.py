@@ -43,10 +43,11 @@ class KalmanFilter(AbstractGaussianFilter):
     form P+ = (I - K H) P (I - K H)^T + K R K^T of the measurement update.
 
     ``closed_form_gradient``: on a :class:`~jaxest.LinearGaussian` model without ``G``, run
-    from a prior, the total log-likelihood ``result.loglik`` is differentiated by Fisher's
-    identity (an RTS smoother, :mod:`jaxest.filters.fisher`) instead of autodiff through the
-    steps: same gradient, about half the reverse-pass time. Every other output, and every other
-    model, is differentiated by autodiff. ``False``: autodiff everywhere.
+    from a prior (not resumed from a state), the total log-likelihood ``result.loglik`` is
+    differentiated by Fisher's identity (an RTS smoother, :mod:`jaxest.filters.fisher`) instead
+    of autodiff through the steps: the same gradient, value_and_grad 1.3-2.3x faster in
+    docs/performance.md. Every other output, and every other model, is differentiated by
+    autodiff. ``False``: autodiff everywhere.
     """
 
     factor_type = Covariance
