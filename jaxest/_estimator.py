@@ -81,6 +81,13 @@ class AbstractEstimator(eqx.Module):
     def check(self, model, ys, inputs, prior) -> None:
         """Raise ``ValueError`` naming the argument for malformed arguments (default: none)."""
 
+    def with_derivatives(self, result, model, prior, ys, inputs, ks):
+        """``result`` of a run from ``prior`` over ``ys`` (time indices ``ks``) with the
+        estimator's own derivative rules attached to its outputs, where it has any (the Kalman
+        filter's log-likelihood, :mod:`jaxest.filters.fisher`); default: ``result`` as it is,
+        differentiated by autodiff through the steps."""
+        return result
+
 
 class AbstractAssociativeEstimator(AbstractEstimator):
     """An estimator whose steps are elements combined by an associative operation.

@@ -83,6 +83,8 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel):
             body, (first, jnp.zeros((), jnp.int32)), (ks, ys, inputs, keys)
         )
     result = estimator.result(outputs, final)
+    if state is None:
+        result = estimator.with_derivatives(result, model, prior, ys, inputs, ks)
     return eqx.tree_at(
         lambda r: (r.any_status, r.saved),
         result,

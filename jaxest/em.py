@@ -4,7 +4,7 @@ For x_{k+1} = F x_k + B u_k + w_k, y_k = H x_k + D u_k + v_k (G = I), x_0 ~ N(m0
 iteration runs the Kalman filter and RTS smoother at the current parameters (E-step) and
 maximises the expected complete-data log-likelihood in closed form (M-step). With the smoothed
 moments x(k|T), P(k|T) and the lag-one cross covariances P(k+1,k|T) = P(k+1|T) E_k^T (E_k the RTS
-gain, :func:`~jaxest.smoothers.parallel.smoother_gains`), and z_k = [x_k; u_k],
+gain; :attr:`~jaxest.SmootherResult.cross_cov`), and z_k = [x_k; u_k],
 
     S_zz = sum_k E[z_k z_k^T],  S_zt = sum_k E[z_k t_k^T],  S_tt = sum_k E[t_k t_k^T]        (1)
 
@@ -37,7 +37,6 @@ from jaxest.filters.kalman import KalmanFilter
 from jaxest.filters.parallel import ParallelKalmanFilter
 from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
 from jaxest.models import LinearGaussian
-from jaxest.smoothers.parallel import smoother_gains
 from jaxest.smoothers.rts import rts_smooth
 
 #: the parameters fit_em estimates; any of them may be held fixed
@@ -68,9 +67,7 @@ def e_step(model, prior, ys, inputs, parallel: bool) -> Moments:
     else:
         filtered = run(KalmanFilter(), model, ys, prior=prior, inputs=inputs, parallel=False)
     smoothed = rts_smooth(model, filtered, inputs=inputs, parallel=parallel)
-    gains = smoother_gains(model, filtered, inputs)
-    cross = smoothed.cov[1:] @ jnp.swapaxes(gains, -1, -2)
-    return Moments(smoothed.mean, smoothed.cov, cross, filtered.loglik)
+    return Moments(smoothed.mean, smoothed.cov, smoothed.cross_cov, filtered.loglik)
 
 
 def regression_stats(mo: Moments, ys, inputs):

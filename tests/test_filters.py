@@ -170,8 +170,8 @@ def test_jit_vmap_grad(Filter, dtype):
     ref_grads = jax.jit(
         jax.grad(
             lambda q: (
-                je.run(
-                    KalmanFilter(),
+                je.run(  # autodiff through the recursion, not the closed form
+                    KalmanFilter(closed_form_gradient=False),
                     je.LinearGaussian(model.F, model.H, q * model.Q, model.R),
                     sim.y,
                     prior=prior,

@@ -133,6 +133,7 @@ def test_parallel_smoother_equals_sequential_rts(square_root):
     par = je.rts_smooth(model, filtered, inputs=inputs, parallel=True)
     assert_close(par.mean, seq.mean)
     assert_close(par.cov, seq.cov)
+    assert_close(par.cross_cov, seq.cross_cov)
     assert bool(par.ok)
 
 

@@ -14,7 +14,7 @@ and the last element is E = 0, g = x(T-1|T-1), L = P(T-1|T-1). Combining the ele
 the suffix ending at T-1 has E = 0 and (g, L) = x(k|T), P(k|T). F_k is linearised at x(k|k) as
 in :func:`~jaxest.rts_smooth`, so both give the same numbers (exact for linear models). The
 lag-one cross covariances Cov(x_{k+1}, x_k | y_0..y_{T-1}) = P(k+1|T) E_k^T (Shumway & Stoffer,
-Time Series Analysis, Property 6.3) follow from the gains (:func:`smoother_gains`).
+Time Series Analysis, Property 6.3) follow from the gains.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
-from jaxest.linalg import after, symmetrize
+from jaxest.linalg import after, mm, symmetrize
 from jaxest.smoothers.rts import SmootherResult, smoother_gain, transition_cross_covariance
 
 
@@ -78,7 +78,8 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None):
     )
     suffixes = jax.lax.associative_scan(jax.vmap(combine), elements, reverse=True)
     status = jax.vmap(finite_status)(suffixes.g, suffixes.L)
-    return SmootherResult(suffixes.g, suffixes.L, status | result.status)
+    cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
+    return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross)
 
 
 __all__ = ["parallel_rts_smooth", "smoother_gains"]

@@ -17,15 +17,20 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
-from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
+from jaxest.linalg import cho_solve_lower, cholesky, mm, mv, sandwich, symmetrize
 
 
 class SmootherResult(eqx.Module):
-    """Smoothed means x(k|T), covariances P(k|T), and status bits per step."""
+    """Smoothed means x(k|T), covariances P(k|T), status bits per step, and the lag-one cross
+    covariances P(k+1,k|T) = Cov(x_{k+1}, x_k | y_0..y_{T-1}) = P(k+1|T) C_k^T, k = 0..T-2
+    (Shumway & Stoffer, Time Series Analysis, Property 6.3), which with the means and
+    covariances are the sufficient statistics of EM (:func:`~jaxest.fit_em`) and of the Kalman
+    log-likelihood's gradient (:mod:`jaxest.filters.fisher`)."""
 
     mean: Float[Array, "T n"]
     cov: Float[Array, "T n n"]
     status: Int[Array, " T"]
+    cross_cov: Float[Array, "T-1 n n"]
 
     @property
     def ok(self) -> jax.Array:
@@ -66,7 +71,7 @@ def transition_cross_covariance(model):
 
     def cross_covariance(k, mean, cov, u):
         _, F, _, _ = model.transition(mean, u, k)
-        return cov @ F.T
+        return mm(cov, F.T)
 
     return cross_covariance
 
@@ -88,9 +93,10 @@ def backward_pass(result: FilterResult, inputs, cross_covariance) -> SmootherRes
         mean_next, cov_next = carry
         k, mean, cov, pred_mean_next, pred_cov_next, u = args
         gain = smoother_gain(cross_covariance(k, mean, cov, u), pred_cov_next)
-        mean_s = mean + gain @ (mean_next - pred_mean_next)
-        cov_s = symmetrize(cov + gain @ (cov_next - pred_cov_next) @ gain.T)
-        return (mean_s, cov_s), (mean_s, cov_s, finite_status(mean_s, cov_s))
+        mean_s = mean + mv(gain, mean_next - pred_mean_next)
+        cov_s = symmetrize(cov + sandwich(gain, cov_next - pred_cov_next))
+        cross = mm(cov_next, gain.T)
+        return (mean_s, cov_s), (mean_s, cov_s, cross, finite_status(mean_s, cov_s))
 
     last = (result.mean[-1], result.cov[-1])
     args = (
@@ -101,9 +107,10 @@ def backward_pass(result: FilterResult, inputs, cross_covariance) -> SmootherRes
         result.predicted_cov[1:],
         u_seq,
     )
-    _, (means, covs, status) = jax.lax.scan(backward, last, args, reverse=True)
+    _, (means, covs, cross, status) = jax.lax.scan(backward, last, args, reverse=True)
     return SmootherResult(
         jnp.concatenate([means, last[0][None]]),
         jnp.concatenate([covs, last[1][None]]),
         jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
+        cross,
     )

@@ -1,0 +1,123 @@
+"""The derivative of the Kalman filter's log-likelihood on a linear-Gaussian model in closed form,
+by Fisher's identity, instead of autodiff through the recursion.
+
+For x_{k+1} = F_k x_k + B_k u_k + w_k, w_k ~ N(0, Q_k), y_k = H_k x_k + D_k u_k + v_k,
+v_k ~ N(0, R_k), x_0 ~ N(m0, P0) and any parameter theta (the matrices, the prior, the
+measurements y_k or the inputs u_k), p(y) = int p(x, y) dx gives Fisher's identity
+
+    d/dtheta log p(y | theta) = E[ d/dtheta log p(x, y | theta) | y ],                    (1)
+
+the expectation over the smoothed posterior p(x | y, theta). With the posterior held at theta_hat
+(the RTS smoother's x(k|T), P(k|T) and lag-one cross covariances C_k = P(k+1,k|T), a
+:class:`~jaxest.SmootherResult`), (1) is the gradient at theta = theta_hat of the expected
+complete-data log-likelihood (the EM objective of :mod:`jaxest.em`), up to constants
+
+    L(theta) = l(x_0 - m0, P0)  +  sum_{k=0}^{T-2} l(x_{k+1} - F_k x_k - B_k u_k, Q_k)
+             + sum_{k=0}^{T-1} l(y_k - H_k x_k - D_k u_k, R_k),                           (2)
+
+    l(r, S) = E[ -1/2 ln det S - 1/2 r^T S^-1 r ]
+            = -1/2 ln det S - 1/2 tr( S^-1 (Cov r + E[r] E[r]^T) ),                       (3)
+
+with Cov(x_{k+1} - F x_k) = P(k+1|T) - F C_k^T - C_k F^T + F P(k|T) F^T and
+Cov(y_k - H x_k) = H P(k|T) H^T. Written out (symmetric S; r_bar = E[r]):
+
+    dL/dS  = 1/2 S^-1 (Cov r + r_bar r_bar^T - S) S^-1        for S = P0, Q_k, R_k,
+    dL/dm0 = P0^-1 (x(0|T) - m0),
+    dL/dF_k = Q_k^-1 (r_bar x(k|T)^T + C_k - F_k P(k|T)),      dL/dB_k = Q_k^-1 r_bar u_k^T,
+    dL/dH_k = R_k^-1 (e_bar x(k|T)^T - H_k P(k|T)),            dL/dD_k = R_k^-1 e_bar u_k^T,
+    dL/dy_k = -R_k^-1 e_bar,   dL/du_k = B_k^T Q_k^-1 r_bar + D_k^T R_k^-1 e_bar,        (4)
+
+e_bar = y_k - H_k x(k|T) - D_k u_k; they are what ``jax.grad`` of (2)-(3) computes here, through
+the model's own ``transition`` / ``observation`` (time-varying matrices and inputs included).
+Missing (NaN) entries of y_k leave their term out: (2) is written with the filter's masked
+measurement (:func:`~jaxest.filters.common.masked_measurement`), whose R has the observed block
+and an identity elsewhere and whose H rows and innovation are zero there, so the missing rows
+add a constant and their entries of R, H, D and y_k get zero gradient, as in autodiff.
+
+(1) needs the filter's log-likelihood to be log p(y) exactly, which the Kalman filter's is on a
+linear-Gaussian model; models with a noise gain G are left to autodiff (G Q G^T may be singular,
+where (3) has no density). Cost: one RTS smoother and a batched (not sequential) evaluation of
+(3) over the steps, against autodiff's reverse sweep through every step of the filter.
+Covariance gradients are symmetric: they are the derivatives along symmetric perturbations (the
+filter uses P0 unsymmetrised, so autodiff's gradient for it need not be symmetric; the symmetric
+parts agree).
+
+The rule is a ``custom_jvp``: its tangent is the inner product of (4) with the parameters'
+tangents, linear in them, so reverse mode (``grad``) transposes it and forward mode (``jvp``,
+``jax.hessian`` = forward over reverse) differentiates the smoother and (4) by autodiff, which is
+exact: (4) equals the gradient of log p(y) at every theta.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from jaxest._run import SaveAt, run
+from jaxest.filters.base import FilterResult
+from jaxest.filters.common import masked_measurement
+from jaxest.linalg import chol_inverse, cholesky, logdet_chol, mm, symmetrize
+from jaxest.smoothers.rts import NEEDED, SmootherResult, rts_smooth
+
+
+def expected_logpdf(residual_mean, residual_cov, cov):
+    """Eq (3): E[ln N(r; 0, S)] + const for r with the given mean and covariance, S = ``cov``
+    (symmetrised, so its gradient is symmetric). S^-1 is formed, not solved with: under ``vmap``
+    over the steps a time-invariant S is then factored and inverted once."""
+    L = cholesky(symmetrize(cov))
+    second_moment = residual_cov + jnp.outer(residual_mean, residual_mean)
+    return -0.5 * (logdet_chol(L) + jnp.sum(chol_inverse(L) * second_moment))
+
+
+def expected_complete_loglik(model, prior, ys, inputs, ks, mo: SmootherResult):
+    """Eq (2) at the parameters (model, prior, ys, inputs) for the fixed smoothed moments ``mo``."""
+    T = ys.shape[0]
+    u_now = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+
+    def dynamics(k, mean, cov, mean_next, cov_next, cross, u):
+        pred, F, _, Q = model.transition(mean, u, k)
+        FC = mm(F, cross.T)
+        residual_cov = cov_next - FC - FC.T + mm(mm(F, cov), F.T)
+        return expected_logpdf(mean_next - pred, residual_cov, Q)
+
+    def measurement(k, mean, cov, y, u):
+        y_pred, H, R = model.observation(mean, u, k)
+        meas = masked_measurement(y, y_pred, H, R)
+        return expected_logpdf(meas.innovation, mm(mm(meas.H, cov), meas.H.T), meas.R)
+
+    first = expected_logpdf(mo.mean[0] - prior.mean, mo.cov[0], prior.cov)
+    steps = jax.vmap(dynamics)(
+        ks[: T - 1], mo.mean[:-1], mo.cov[:-1], mo.mean[1:], mo.cov[1:], mo.cross_cov, u_now
+    )
+    observations = jax.vmap(measurement)(ks, mo.mean, mo.cov, ys, inputs)
+    return first + jnp.sum(steps) + jnp.sum(observations)
+
+
+@jax.custom_jvp
+def fisher_loglik(loglik, model, prior, ys, inputs, ks, filtered: FilterResult | None):
+    """``loglik`` (the Kalman filter's log p(y) of ``model``, no G, from ``prior`` over ``ys``
+    with time indices ``ks``), differentiated by eqs (1)-(4) (module docstring). ``filtered``:
+    that run's result if it holds the fields the smoother needs, else ``None`` (the derivative
+    then runs the filter again to get them)."""
+    return loglik
+
+
+@fisher_loglik.defjvp
+def _fisher_loglik_jvp(primals, tangents):
+    from jaxest.filters.kalman import KalmanFilter  # which differentiates through this module
+
+    loglik, model, prior, ys, inputs, ks, filtered = primals
+    _, d_model, d_prior, d_ys, d_inputs, _, _ = tangents
+    if filtered is None:
+        filtered = run(
+            KalmanFilter(closed_form_gradient=False), model, ys, prior=prior, inputs=inputs,
+            k0=ks[0], save=SaveAt(fields=NEEDED),
+        )  # fmt: skip
+    moments = rts_smooth(model, filtered, inputs=inputs)
+    gradient = jax.grad(expected_complete_loglik, argnums=(0, 1, 2, 3))(
+        model, prior, ys, inputs, ks, moments
+    )
+    products = jax.tree.map(
+        lambda g, d: jnp.vdot(g, d), gradient, (d_model, d_prior, d_ys, d_inputs)
+    )
+    return loglik, sum(jax.tree.leaves(products), jnp.zeros_like(loglik))
