@@ -10,8 +10,6 @@ covariance tangent dP, the factor tangent dU = 1/2 dP U D^-2, dD = 0, which repr
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
@@ -208,62 +206,13 @@ def sandwich(A, P):
 #: batched matrices on CPU)
 SMALL_FACTOR = 8
 
-#: smallest size at which a single (unbatched) matrix goes to LAPACK rather than the unrolled
-#: kernel (:func:`_lapack_unless_batched`): below it the unrolled kernel was faster even alone
-#: (2 x 2 and 3 x 3 innovation covariances of the benchmark filters), from it LAPACK was (the
-#: 4 x 4 and 6 x 6 predicted covariances that the RTS gain factors: docs/performance.md)
-LAPACK_ALONE_FROM = 4
 
-
-def _lapack_unless_batched(lapack, unrolled):
-    """``unrolled`` (elementwise jnp code) wherever the call is batched, ``lapack`` for a single
-    matrix of at least ``LAPACK_ALONE_FROM`` rows: under ``vmap`` (a ``custom_vmap`` rule), and
-    for explicitly stacked operands (more than two axes), the unrolled kernel runs; a lone
-    matrix outside ``vmap`` goes to LAPACK unless it is smaller than that.
-
-    Both halves matter. Unrolled code vectorises over a batch where LAPACK pays its per-call cost
-    for each matrix, and batched LAPACK calls can deadlock jaxlib 0.10's CPU thread pool (see
-    :func:`after`); so nothing batched reaches LAPACK here. For one sequence, LAPACK's kernel
-    is faster than the unrolled one (6 x 3 RTS smoother: measured in docs/performance.md).
-    Derivatives are those of ``unrolled`` (a ``custom_jvp``: ``custom_vmap`` alone cannot be
-    transposed), so a differentiated call runs the unrolled kernel as before; operands with a
-    zero tangent are held constant, so they add no tangent work."""
-
-    @jax.custom_batching.custom_vmap
-    def dispatch(*args):
-        alone = all(a.ndim == 2 for a in args) and args[0].shape[-1] >= LAPACK_ALONE_FROM
-        return lapack(*args) if alone else unrolled(*args)
-
-    @dispatch.def_vmap
-    def _rule(axis_size, in_batched, *args):
-        if not any(in_batched):  # a tangent batched where its primal is not (Hessians)
-            return unrolled(*args), False
-        axes = [0 if b else None for b in in_batched]
-        return jax.vmap(unrolled, in_axes=axes)(*args), True
-
-    @jax.custom_jvp
-    def kernel(*args):
-        return dispatch(*args)
-
-    def _jvp(primals, tangents):
-        live = [not isinstance(t, SymbolicZero) for t in tangents]
-
-        def of_live(*live_args):
-            it = iter(live_args)
-            return unrolled(*(next(it) if on else p for p, on in zip(primals, live, strict=True)))
-
-        pick = lambda xs: [x for x, on in zip(xs, live, strict=True) if on]  # noqa: E731
-        if not any(live):
-            out = unrolled(*primals)
-            return out, jnp.zeros_like(out)
-        return jax.jvp(of_live, pick(primals), pick(tangents))
-
-    kernel.defjvp(_jvp, symbolic_zeros=True)
-    return kernel
-
-
-def _cholesky_unrolled(A):
+def cholesky(A):
+    """Lower Cholesky factor of SPD ``A`` (last two axes); NaN where ``A`` is not positive
+    definite, as LAPACK's. Unrolled over the matrix size up to ``SMALL_FACTOR``."""
     n = A.shape[-1]
+    if n > SMALL_FACTOR:
+        return jnp.linalg.cholesky(A)
     L = [[None] * n for _ in range(n)]
     for j in range(n):
         diag = jnp.sqrt(A[..., j, j] - sum((L[j][k] ** 2 for k in range(j)), 0.0))
@@ -275,8 +224,14 @@ def _cholesky_unrolled(A):
     return jnp.stack(rows, -2)
 
 
-def _solve_unrolled(L, B, lower):
+def solve_triangular(L, B, *, lower: bool):
+    """X with L X = B for triangular ``L`` (B a matrix, or a vector); substitution unrolled up
+    to ``SMALL_FACTOR``."""
     n = L.shape[-1]
+    if n > SMALL_FACTOR:
+        return jax.scipy.linalg.solve_triangular(L, B, lower=lower)
+    if B.ndim == L.ndim - 1:
+        return solve_triangular(L, B[..., None], lower=lower)[..., 0]
     X = [None] * n
     order = range(n) if lower else range(n - 1, -1, -1)
     for i in order:
@@ -284,35 +239,6 @@ def _solve_unrolled(L, B, lower):
         acc = B[..., i, :] - sum((L[..., i, k, None] * X[k] for k in done), 0.0)
         X[i] = acc / L[..., i, i, None]
     return jnp.stack(X, -2)
-
-
-_small_cholesky = _lapack_unless_batched(jnp.linalg.cholesky, _cholesky_unrolled)
-_small_solve = {
-    lower: _lapack_unless_batched(
-        functools.partial(jax.scipy.linalg.solve_triangular, lower=lower),
-        functools.partial(_solve_unrolled, lower=lower),
-    )
-    for lower in (True, False)
-}
-
-
-def cholesky(A):
-    """Lower Cholesky factor of SPD ``A`` (last two axes); NaN where ``A`` is not positive
-    definite, as LAPACK's. Up to ``SMALL_FACTOR``, unrolled when batched (LAPACK for a single
-    matrix, see :func:`_lapack_unless_batched`); LAPACK above."""
-    if A.shape[-1] > SMALL_FACTOR:
-        return jnp.linalg.cholesky(A)
-    return _small_cholesky(A)
-
-
-def solve_triangular(L, B, *, lower: bool):
-    """X with L X = B for triangular ``L`` (B a matrix, or a vector); substitution unrolled up
-    to ``SMALL_FACTOR``, LAPACK for a single matrix, as :func:`cholesky`."""
-    if L.shape[-1] > SMALL_FACTOR:
-        return jax.scipy.linalg.solve_triangular(L, B, lower=lower)
-    if B.ndim == L.ndim - 1:
-        return solve_triangular(L, B[..., None], lower=lower)[..., 0]
-    return _small_solve[lower](L, B)
 
 
 def _qr_lower(X, *, with_q: bool):

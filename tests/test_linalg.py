@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 
 from jaxest.linalg import (
-    LAPACK_ALONE_FROM,
     SMALL_FACTOR,
     after,
     cho_solve_lower,
@@ -44,38 +43,6 @@ def test_cholesky_and_solves_match_lapack(n, dtype):
     v = solve_triangular(L[0], B[0, :, 0], lower=True)
     np.testing.assert_allclose(L[0] @ v, B[0, :, 0], rtol=tol, atol=tol)
     np.testing.assert_allclose(A @ cho_solve_lower(L, B), B, rtol=100 * tol, atol=100 * tol)
-
-
-@pytest.mark.parametrize("n", [2, LAPACK_ALONE_FROM, 6])
-@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
-def test_lapack_for_a_single_matrix_unrolled_when_batched(n, dtype):
-    """A lone matrix from LAPACK_ALONE_FROM rows goes to LAPACK; under vmap, and in every
-    vmapped gradient, no LAPACK call (jaxlib 0.10's deadlock) and the same values."""
-    rng = np.random.default_rng(n)
-    A = jnp.asarray(np.stack([spd(rng, n) for _ in range(5)]), dtype)
-    B = jnp.asarray(rng.normal(size=(5, n, 3)), dtype)
-    solve = lambda A, B: cho_solve_lower(cholesky(A), B)
-    loss = lambda A, B: jnp.sum(solve(A, B) ** 2)
-    lapack_calls = lambda f, *args: jax.jit(f).lower(*args).as_text().count("lapack")
-    assert lapack_calls(solve, A[0], B[0]) == (3 if n >= LAPACK_ALONE_FROM else 0)
-    grad = jax.grad(loss, (0, 1))
-    for batched in (jax.vmap(solve), jax.vmap(grad), jax.grad(lambda A, B: loss(A, B))):
-        assert lapack_calls(batched, A, B) == 0
-    tol = 1e-4 if dtype == jnp.float32 else 1e-11
-    single = jax.jit(solve)(A[0], B[0])
-    assert single.dtype == dtype
-    np.testing.assert_allclose(single, jax.jit(jax.vmap(solve))(A, B)[0], rtol=tol, atol=tol)
-    for g1, g2 in zip(jax.jit(grad)(A[0], B[0]), jax.jit(jax.vmap(grad))(A, B), strict=True):
-        np.testing.assert_allclose(g1, g2[0], rtol=100 * tol, atol=100 * tol)
-    if dtype == jnp.float64:  # against a finite difference along a direction dA
-        dA = jnp.asarray(spd(rng, n), dtype)
-        fd = (loss(A[0] + 1e-7 * dA, B[0]) - loss(A[0] - 1e-7 * dA, B[0])) / 2e-7
-        np.testing.assert_allclose(jnp.sum(grad(A[0], B[0])[0] * dA), fd, rtol=1e-5)
-        # second derivative along dA (forward over reverse: a tangent batched, its primal not)
-        along = lambda solve: lambda t: jnp.sum(solve(A[0] + t * dA, B[0]) ** 2)
-        second = lambda solve: jax.jacfwd(jax.grad(along(solve)))(0.0)
-        ref = second(jnp.linalg.solve)
-        np.testing.assert_allclose(jax.jit(lambda: second(solve))(), ref, rtol=1e-9)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (4, 4, 4), (2, 6, 3), (8, 8, 8), (9, 8, 8)])
