@@ -16,7 +16,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
-from jaxest.setmembership.rounding import correlation_floor, gamma, outward, unit_roundoff
+from jaxest.setmembership.rounding import (
+    correlation_floor,
+    diagonal_scaling,
+    gamma,
+    outward,
+    unit_roundoff,
+)
 
 
 class Ellipsoid(eqx.Module):
@@ -292,12 +298,11 @@ def contains(
     n = shape.shape[-1]
     dtype = shape.dtype
     u = unit_roundoff(dtype)
-    scale = jnp.sqrt(jnp.abs(jnp.diagonal(shape)))
-    scale = jnp.where(scale > 0, scale, 1.0)
+    scale, C = diagonal_scaling(shape)
     y = (x - center) / scale
-    w = spd_solve(shape / scale[:, None] / scale[None, :], y)
+    w = spd_solve(C, y)
     t = y @ w - gamma(n, dtype) * (jnp.abs(y) @ jnp.abs(w))
-    floor = correlation_floor(shape)
+    floor = correlation_floor(C, jnp.all(jnp.diagonal(shape) > 0))
     certified = floor > 0
     floor = jnp.where(certified, floor, 1.0)
     backward = (n**2 * gamma(3 * n + 1, dtype) + 2 * u * n) / floor

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float
 
 from jaxest.linalg import cholesky, inv_spd
 
@@ -47,14 +47,17 @@ def gamma(k: int, dtype) -> float:
     return k * u / (1 - k * u)
 
 
-def product_error(a: Float[Array, "n k"], b: Float[Array, "k m"]) -> Float[Array, "n m"]:
-    """|fl(a b) - a b| <= gamma_k |a| |b| (Higham eq 3.13), whatever the order of summation."""
-    return gamma(a.shape[-1], a.dtype) * (jnp.abs(a) @ jnp.abs(b))
+def diagonal_scaling(shape: Float[Array, "n n"]):
+    """``(d, C)``: d = sqrt(|P_ii|) (1 where that is 0) and C = D^-1 P D^-1, D = diag(d), the
+    scaling of eqs O1-O2 and O6."""
+    scale = jnp.sqrt(jnp.abs(jnp.diagonal(shape)))
+    scale = jnp.where(scale > 0, scale, 1.0)
+    return scale, shape / scale[:, None] / scale[None, :]
 
 
-def correlation_floor(shape: Float[Array, "n n"]) -> Float[Array, ""]:
-    """A rigorous lower bound on lambda_min of C = D^-1 P D^-1 (D = diag(sqrt(P_ii))); 0 where
-    none is proved (P not positive definite, or too ill-conditioned to certify).
+def correlation_floor(C: Float[Array, "n n"], positive: Bool[Array, ""]) -> Float[Array, ""]:
+    """A rigorous lower bound on lambda_min of C = D^-1 P D^-1 (:func:`diagonal_scaling`); 0 where
+    none is proved (``positive``: every P_ii > 0 is false, or too ill-conditioned to certify).
 
     n = 1: C = 1. n = 2: lambda_min(C) = 1 - |rho|, rho = P_12 / sqrt(P_11 P_22), computed to
     within 4 roundings. n >= 3: mu = 1 / trace(C^-1) <= lambda_min(C) is estimated from a
@@ -63,14 +66,10 @@ def correlation_floor(shape: Float[Array, "n n"]) -> Float[Array, ""]:
     gamma_{n+1}) + the rounding of forming it proves C - (mu/2) I positive definite (Rump 2006,
     Thm 2.3; trace(C) = n).
     """
-    n = shape.shape[-1]
-    dtype = shape.dtype
+    n = C.shape[-1]
+    dtype = C.dtype
     if n == 1:
-        return jnp.where(shape[0, 0] > 0, 1.0, 0.0).astype(dtype)
-    scale = jnp.sqrt(jnp.abs(jnp.diagonal(shape)))
-    positive = jnp.all(jnp.diagonal(shape) > 0)
-    scale = jnp.where(positive, scale, 1.0)
-    C = shape / scale[:, None] / scale[None, :]
+        return jnp.where(positive, 1.0, 0.0).astype(dtype)
     if n == 2:
         floor = 1 - jnp.abs(C[0, 1]) - gamma(6, dtype)
     else:
@@ -94,9 +93,8 @@ def outward(
     lambda_min(C) is not certified positive the result is +inf on the diagonal (the whole space:
     the filter then reports the set as lost). Zero error bounds return ``shape`` unchanged."""
     n = shape.shape[-1]
-    floor = correlation_floor(shape)
-    scale = jnp.sqrt(jnp.abs(jnp.diagonal(shape)))
-    scale = jnp.where(scale > 0, scale, 1.0)
+    scale, C = diagonal_scaling(shape)
+    floor = correlation_floor(C, jnp.all(jnp.diagonal(shape) > 0))
     u = unit_roundoff(shape.dtype)
     scaled = (shape_error + 2 * u * jnp.abs(shape)) / scale[:, None] / scale[None, :]
     certified = floor > 0
