@@ -1,0 +1,192 @@
+"""Where the flight EKF's NEES excess comes from (issue 16); prints JSON.
+
+    python benchmarks/flight_nees.py [--runs 30] [--rates 10 32] [--maneuver elevator] [--json PATH]
+
+The flights are simulated from the filter's own discrete model
+(:func:`jaxest.studies.svd_ekf.own_model_flights`), so noise and discretisation match what the
+filter assumes exactly and only the nonlinearity of f and h is left. The paper's EKF then runs on
+variants of the model in which parts of f or h are replaced by their first-order expansion about
+the *true* trajectory, x_ref(k):
+
+    f_lin(x, u) = f(x_ref, u) + F(x_ref) (x - x_ref),   G at x_ref          (transition)
+    h_lin(x, u) = h(x_ref, u) + H(x_ref) (x - x_ref)                          (observation rows)
+
+With both linearised the EKF is the Kalman filter of a linear time-varying model that generated the
+data to first order: its NEES must be the state dimension, which checks the noise model. Linearising
+one part at a time, and one measurement channel at a time, says which nonlinearity the excess comes
+from. The ``known_*`` variants give the EKF one sensor parameter's true value (prior std cut by
+1000), which removes that parameter's products with the states from what the filter must estimate.
+The UKF and the iterated EKF run on the exact model; ``linearised_about_smoothed_pass_i`` is the
+iterated extended smoother's linearisation (about the previous pass's RTS-smoothed means, the
+first pass about the EKF's). docs/papers/svd_ekf.md discusses the figures.
+The reference trajectory enters through the inputs (each step's input is [u, x_ref(k)]), so one
+model serves every run of the ``vmap``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Callable
+
+import equinox as eqx
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+from jaxest._priors import Gaussian  # noqa: E402
+from jaxest._run import run  # noqa: E402
+from jaxest.filters import EKF, UKF, IteratedEKF  # noqa: E402
+from jaxest.models import NonlinearGaussian  # noqa: E402
+from jaxest.report import emit_json  # noqa: E402
+from jaxest.smoothers import rts_smooth  # noqa: E402
+from jaxest.studies import svd_ekf  # noqa: E402
+from jaxest.systems import flight_sim as sim  # noqa: E402
+from jaxest.systems.flight import N_STATE, OUTPUTS, STATES  # noqa: E402
+
+
+class AboutReference(eqx.Module):
+    """``fn(x, u)`` with the rows ``rows`` (all rows: None) replaced by their first-order expansion
+    about the reference state carried in the last N_STATE entries of the input."""
+
+    fn: Callable
+    rows: tuple[int, ...] | None = eqx.field(static=True, default=None)
+
+    def __call__(self, x, u_ref):
+        u, ref = u_ref[:-N_STATE], u_ref[-N_STATE:]
+        value, derivative = jax.linearize(lambda z: self.fn(z, u), ref)
+        linear = value + derivative(x - ref)
+        if self.rows is None:
+            return linear
+        return self.fn(x, u).at[jnp.asarray(self.rows)].set(linear[jnp.asarray(self.rows)])
+
+
+class Exact(eqx.Module):
+    """``fn(x, u)`` of the original model, the reference dropped from the input."""
+
+    fn: Callable
+
+    def __call__(self, x, u_ref):
+        return self.fn(x, u_ref[:-N_STATE])
+
+
+class GainAt(eqx.Module):
+    """The noise gain G at the reference state (``at_reference``) or at the filter's estimate."""
+
+    gain: Callable
+    at_reference: bool = eqx.field(static=True)
+
+    def __call__(self, x, u_ref):
+        u, ref = u_ref[:-N_STATE], u_ref[-N_STATE:]
+        return self.gain(ref if self.at_reference else x, u)
+
+
+def variant(model: NonlinearGaussian, transition: bool, rows) -> NonlinearGaussian:
+    """``model`` with its transition linearised about the reference (``transition``) and the
+    observation rows ``rows`` linearised (``()``: none, None: all)."""
+    f = AboutReference(model.transition_fn) if transition else Exact(model.transition_fn)
+    h = Exact(model.observation_fn) if rows == () else AboutReference(model.observation_fn, rows)
+    gain = GainAt(model.noise_gain, at_reference=transition)
+    return NonlinearGaussian(f, h, model.Q, model.R, noise_gain=gain)
+
+
+def variants(model):
+    """name -> (estimator, model, the state given its true value or None)."""
+    exact = variant(model, False, ())
+    out = {
+        "ekf": (EKF(), exact, None),
+        "ukf": (UKF(), exact, None),
+        "iterated_ekf_3": (IteratedEKF(3), exact, None),
+        "linearised_about_truth": (EKF(), variant(model, True, None), None),
+        "transition_linearised": (EKF(), variant(model, True, ()), None),
+        "observation_linearised": (EKF(), variant(model, False, None), None),
+    }
+    for j, channel in enumerate(OUTPUTS):
+        out[f"observation_{channel}_linearised"] = (EKF(), variant(model, False, (j,)), None)
+    for name in ("lam_beta", "b_beta", "lam_alpha", "b_alpha"):
+        out[f"known_{name}"] = (EKF(), exact, STATES.index(name))
+    return out
+
+
+@eqx.filter_jit
+def smoothed_means(model, ys, inputs, mean0, P0, chunk):
+    """EKF + RTS smoother means of every run (the reference of the next linearisation)."""
+
+    def one(args):
+        y, u, m0 = args
+        result = run(EKF(), model, y, inputs=u, prior=Gaussian(m0, P0))
+        return rts_smooth(model, result, inputs=u).mean
+
+    return jax.lax.map(one, (ys, inputs, mean0), batch_size=chunk)
+
+
+def summary_of(metrics, expected_all, seconds):
+    F = svd_ekf.summarise(metrics, ~svd_ekf.diverged(metrics))
+    return {
+        "nees": {g: F[g]["nees"] for g in svd_ekf.NEES_GROUPS if g in F},
+        "expected_all": expected_all,
+        "nis": F.get("nis"),
+        "diverged_runs": F["diverged_runs"],
+        "seconds": seconds,
+    }
+
+
+def nees_attribution(maneuver: str, rate: int, runs: int, passes: int, seed: int = 0) -> dict:
+    truth = sim.true_flight(maneuver, rate)
+    key = jax.random.fold_in(jax.random.key(seed), 100 * sim.MANEUVERS.index(maneuver) + rate)
+    model, P0 = svd_ekf.model_for(rate, jnp.float64), svd_ekf.prior_cov(jnp.float64)
+    batch = svd_ekf.simulated_batch(truth, runs, key, jnp.float64)
+    ys, inputs, mean0, states = svd_ekf.own_model_flights(model, batch, jax.random.fold_in(key, 1))
+    about = lambda ref: jnp.concatenate([inputs, ref], axis=-1)
+    settle, chunk = int(svd_ekf.SETTLE_S * rate), min(runs, 10)
+    out = {}
+    for name, (estimator, m, known) in variants(model).items():
+        start, P_init, m0 = time.perf_counter(), P0, mean0
+        if known is not None:
+            P_init = P0.at[known, known].multiply(1e-6)
+            m0 = mean0.at[:, known].set(states[:, 0, known])
+        metrics = svd_ekf.monte_carlo(estimator, m, (ys, about(states), m0, states), P_init,
+                                      settle, chunk)  # fmt: skip
+        out[name] = summary_of(metrics, N_STATE - (known is not None), time.perf_counter() - start)
+        print(f"{maneuver} {rate} Hz {name}: NEES {out[name]['nees']}", flush=True)
+    # the iterated extended smoother's linearisation: about the previous pass's smoothed means
+    start, linear = time.perf_counter(), variant(model, True, None)
+    reference = smoothed_means(variant(model, False, ()), ys, about(states), mean0, P0, chunk)
+    for i in range(passes):
+        metrics = svd_ekf.monte_carlo(EKF(), linear, (ys, about(reference), mean0, states), P0,
+                                      settle, chunk)  # fmt: skip
+        name = f"linearised_about_smoothed_pass_{i + 1}"
+        out[name] = summary_of(metrics, N_STATE, time.perf_counter() - start)
+        out[name]["reference_rms_error"] = {
+            s: float(np.sqrt(np.mean((reference - states)[..., STATES.index(s)] ** 2)))
+            for s in ("v", "b_beta", "lam_beta")
+        }
+        print(f"{maneuver} {rate} Hz {name}: NEES {out[name]['nees']}", flush=True)
+        reference = smoothed_means(linear, ys, about(reference), mean0, P0, chunk)
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=30)
+    parser.add_argument("--rates", type=int, nargs="+", default=[10, 32])
+    parser.add_argument("--maneuver", choices=sim.MANEUVERS, default="elevator")
+    parser.add_argument("--passes", type=int, default=3, help="smoothed-reference passes")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+    result = {
+        "maneuver": args.maneuver,
+        "runs": args.runs,
+        "rates": {
+            r: nees_attribution(args.maneuver, r, args.runs, args.passes) for r in args.rates
+        },
+    }
+    emit_json(jax.tree.map(lambda a: float(a) if isinstance(a, np.floating) else a, result),
+              args.json)  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,66 @@
+"""The model variants of ``benchmarks/flight_nees.py`` (issue 16): rows of f and h replaced by their
+first-order expansion about a reference state carried in the input, checked against Jacobians
+computed here with ``jax.jacfwd``."""
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxest.studies import svd_ekf
+from jaxest.systems import flight_sim as sim
+from jaxest.systems.flight import N_STATE
+
+_spec = importlib.util.spec_from_file_location(
+    "flight_nees", Path(__file__).parent.parent / "benchmarks" / "flight_nees.py"
+)
+flight_nees = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = flight_nees  # equinox Modules look their module up
+_spec.loader.exec_module(flight_nees)
+
+
+@pytest.fixture(scope="module")
+def setting():
+    jax.config.update("jax_enable_x64", True)
+    model = svd_ekf.model_for(10, jnp.float64)
+    truth = sim.true_flight("aileron", 10, 2.0)
+    batch = svd_ekf.simulated_batch(truth, 1, jax.random.key(3), jnp.float64)
+    ys, inputs, mean0, states = (a[0] for a in batch)
+    k = 7
+    ref = states[k]
+    x = mean0 + 0.3 * jnp.sqrt(jnp.diagonal(svd_ekf.prior_cov(jnp.float64)))
+    return model, inputs[k], ref, x
+
+
+def test_linearised_rows_are_the_first_order_expansion_and_the_rest_is_exact(setting):
+    model, u, ref, x = setting
+    u_ref = jnp.concatenate([u, ref])
+    h = model.observation_fn
+    expansion = h(ref, u) + jax.jacfwd(lambda z: h(z, u))(ref) @ (x - ref)
+    all_rows = flight_nees.AboutReference(h)(x, u_ref)
+    np.testing.assert_allclose(all_rows, expansion, rtol=1e-12, atol=1e-12)
+    beta_only = flight_nees.AboutReference(h, (1,))(x, u_ref)
+    np.testing.assert_allclose(beta_only[1], expansion[1], rtol=1e-12, atol=1e-12)
+    keep = np.array([0, 2, 3, 4, 5])
+    np.testing.assert_allclose(beta_only[keep], h(x, u)[keep], rtol=1e-12, atol=1e-12)
+    assert not np.allclose(beta_only[1], h(x, u)[1])  # x is far enough from ref to tell them apart
+
+
+def test_variants_linearise_f_with_G_at_the_reference(setting):
+    model, u, ref, x = setting
+    u_ref = jnp.concatenate([u, ref])
+    linear = flight_nees.variant(model, True, None)
+    exact = flight_nees.variant(model, False, ())
+    f = model.transition_fn
+    expansion = f(ref, u) + jax.jacfwd(lambda z: f(z, u))(ref) @ (x - ref)
+    np.testing.assert_allclose(linear.f(x, u_ref), expansion, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(exact.f(x, u_ref), f(x, u), rtol=1e-14)
+    np.testing.assert_allclose(exact.h(x, u_ref), model.observation_fn(x, u), rtol=1e-14)
+    G = model.noise_gain
+    np.testing.assert_allclose(linear.noise_gain(x, u_ref), G(ref, u), rtol=1e-14)
+    np.testing.assert_allclose(exact.noise_gain(x, u_ref), G(x, u), rtol=1e-14)
+    assert u_ref.shape == (u.shape[0] + N_STATE,)
