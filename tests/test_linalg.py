@@ -1,5 +1,7 @@
 """The unrolled small-matrix kernels against LAPACK, under jit, vmap and grad, float32 and 64."""
 
+import re
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -213,3 +215,16 @@ def test_after_leaves_values_and_gradients_unchanged_and_stops_nan():
     )
     np.testing.assert_array_equal(grad_value, 2 * jnp.arange(3.0))
     np.testing.assert_array_equal(grad_dep, 0.0)
+
+
+def test_right_svd_unrolls_only_small_matrices():
+    """Jacobi (no LAPACK call) up to SMALL_FACTOR columns and twice that many rows; a taller
+    matrix (the flight filter's 29 x 6 innovation factor) goes to LAPACK, which compiles faster."""
+
+    def lapack_calls(shape):
+        hlo = jax.jit(right_svd).lower(jnp.ones(shape)).compile().as_text()
+        return re.findall(r'custom_call_target="(lapack_[^"]+)"', hlo)
+
+    assert lapack_calls((2 * SMALL_FACTOR, 6)) == []
+    assert lapack_calls((29, 6)) != []
+    assert lapack_calls((20, SMALL_FACTOR + 1)) != []
