@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -53,6 +54,20 @@ def _describe(name: str) -> str:
         return f"(unavailable: {err})"
 
 
+def _seconds_by_study(index_path: Path, quick: bool) -> dict[str, float]:
+    """Each study's wall time in the last run into this folder (``index.json``), where it ran in
+    the same mode (``--quick`` or not); {} without a readable index."""
+    try:
+        index = json.loads(index_path.read_text())
+    except (OSError, ValueError):
+        return {}
+    return {
+        name: entry["seconds"]
+        for name, entry in index.items()
+        if isinstance(entry, dict) and entry.get("quick") == quick and "seconds" in entry
+    }
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     import jax
@@ -63,10 +78,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.runs is not None and args.runs < 1:
         raise SystemExit("--runs: must be at least 1")
     args.out.mkdir(parents=True, exist_ok=True)
+    last_run = _seconds_by_study(args.out / "index.json", args.quick)
     index = {}
-    for name in names:
+    for i, name in enumerate(names):
         start = time.perf_counter()
-        print(f"== {name}: {_describe(name)}", file=sys.stderr)
+        to_go = [last_run.get(n) for n in names[i:]]
+        estimate = (
+            f" (about {sum(to_go):.0f} s to go, by the last run's times)"
+            if None not in to_go
+            else ""
+        )
+        print(f"== [{i + 1}/{len(names)}] {name}: {_describe(name)}{estimate}", file=sys.stderr)
         module = studies.load(name)
         module.run(
             args.out,
@@ -78,6 +100,7 @@ def main(argv: list[str] | None = None) -> int:
         index[name] = {
             "seconds": round(time.perf_counter() - start, 2),
             "dir": str(args.out / name),
+            "quick": args.quick,
         }
         print(
             f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}", file=sys.stderr

@@ -1,4 +1,9 @@
-"""A small progress display for long studies (stderr; a bar on a terminal, lines otherwise)."""
+"""A small progress display for long studies (stderr; a bar on a terminal, lines otherwise).
+
+Written here rather than taken from tqdm or rich: a study advances a few dozen times, each step
+seconds to minutes, and needs a bar, the elapsed time and an estimate of what remains, which is
+less code than adapting a dependency's defaults (per-iteration rates, refresh threads) to it.
+"""
 
 from __future__ import annotations
 
@@ -29,12 +34,23 @@ class Progress:
         self.done = min(self.done + steps, self.total)
         self._show(message)
 
+    def remaining(self, elapsed: float) -> float | None:
+        """Seconds left if the steps still to come take as long as the finished ones did on
+        average (None before the first step). The steps of a study differ, so it is a guide."""
+        if self.done == 0:
+            return None
+        return elapsed * (self.total - self.done) / self.done
+
     def _show(self, message):
         elapsed = time.perf_counter() - self.start
         width = 24
         filled = int(width * self.done / self.total)
         bar = "#" * filled + "-" * (width - filled)
-        text = f"[{self.label}] [{bar}] {self.done}/{self.total} {elapsed:6.1f}s {message}"
+        left = self.remaining(elapsed)
+        estimate = "" if left is None or self.done == self.total else f" ~{left:.0f}s left"
+        text = (
+            f"[{self.label}] [{bar}] {self.done}/{self.total} {elapsed:6.1f}s{estimate} {message}"
+        )
         if self.tty:
             self.stream.write("\r" + text[:120].ljust(120))
         else:

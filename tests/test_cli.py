@@ -45,3 +45,32 @@ def test_filters_study_quick(tmp_path):
     for name in ("robustness.png", "tuning.png", "tables.md"):
         assert (tmp_path / "filters" / name).stat().st_size > 0
     assert json.loads((tmp_path / "index.json").read_text())["filters"]["dir"].endswith("filters")
+
+
+def test_progress_estimates_what_remains_from_the_steps_done():
+    import io
+
+    from jaxest.progress import Progress
+
+    stream = io.StringIO()
+    with Progress("study", total=4, stream=stream) as progress:
+        assert progress.remaining(10.0) is None  # nothing done: no estimate
+        progress.advance("one")
+        assert progress.remaining(10.0) == 30.0  # 3 steps to go at 10 s each
+        progress.advance("two", steps=3)
+    lines = stream.getvalue().splitlines()
+    assert "s left one" in lines[1] and "left" not in lines[0] and "left" not in lines[2]
+
+
+def test_reproduce_estimates_from_the_last_run_in_the_same_mode(tmp_path):
+    index = {
+        "filters": {"seconds": 12.5, "dir": "x", "quick": True},
+        "wiener": {"seconds": 40.0, "dir": "y", "quick": False},
+        "old": {"seconds": 3.0, "dir": "z"},  # written before the mode was recorded
+    }
+    (tmp_path / "index.json").write_text(json.dumps(index))
+    assert cli._seconds_by_study(tmp_path / "index.json", quick=True) == {"filters": 12.5}
+    assert cli._seconds_by_study(tmp_path / "index.json", quick=False) == {"wiener": 40.0}
+    assert cli._seconds_by_study(tmp_path / "missing.json", quick=True) == {}
+    (tmp_path / "index.json").write_text("{not json")
+    assert cli._seconds_by_study(tmp_path / "index.json", quick=True) == {}
