@@ -242,7 +242,9 @@ def adaptive_result(outputs: AdaptiveOutput, final_state) -> AdaptiveResult:
 
 
 def _rk4(field, z, t, h, substeps: int):
-    """Classical Runge-Kutta for z' = field(s, z) over [t, t + h] in ``substeps`` steps."""
+    """Classical Runge-Kutta for z' = field(s, z) over [t, t + h] in ``substeps`` steps: a fixed
+    step of the observer's discretisation, as in :func:`jaxest.systems.flight.integrate_interval`
+    (which says why not diffrax)."""
     d = h / substeps
 
     def axpy(a, x, y):

@@ -102,7 +102,13 @@ def kinematics(
 
 def integrate_interval(x, inputs_start, inputs_end, dt, substeps: int = 1, gravity=GRAVITY):
     """Integrate :func:`kinematics` over one interval of length ``dt`` by ``substeps`` RK4 steps,
-    the inputs interpolated linearly from ``inputs_start`` to ``inputs_end``."""
+    the inputs interpolated linearly from ``inputs_start`` to ``inputs_end``.
+
+    Written out rather than taken from diffrax (a dependency): this fixed classical RK4 step *is*
+    the filter's discrete model (the paper's), not an ODE solve to a tolerance, and it must be
+    traced into every filter step and its Jacobians. diffrax 0.7 ships no classical RK4 tableau,
+    and a ``diffeqsolve`` per step would add its solver state and step loop to each step's
+    program."""
     h = dt / substeps
 
     def inputs_at(s):  # s in [0, 1]: fraction of the interval
