@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.linalg import after, mm, symmetrize
+from jaxest.scan import associative_scan
 from jaxest.smoothers.rts import SmootherResult, smoother_gain, transition_cross_covariance
 
 
@@ -76,7 +77,7 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None):
     elements = jax.tree.map(
         lambda a, b: jnp.concatenate([a, b]), SmootherElement(gains, g, L), last
     )
-    suffixes = jax.lax.associative_scan(jax.vmap(combine), elements, reverse=True)
+    suffixes = associative_scan(jax.vmap(combine), elements, reverse=True)
     status = jax.vmap(finite_status)(suffixes.g, suffixes.L)
     cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
     return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross)
