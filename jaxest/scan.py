@@ -22,11 +22,14 @@ results are dropped, so every combination evaluated is one of the scan's own.
 ``C`` is the smallest power of two >= T / ``CHUNKS`` (at least ``MIN_LANES``, at most the T / 2
 combinations of the first level): the first level takes about ``CHUNKS`` / 2 steps, the whole
 scan at most 2 ``CHUNKS`` + 2 log2 T steps of ``C`` independent combinations each (O(log T) depth
-for a fixed ``CHUNKS``), and the unused lanes add fewer than ``C`` combinations per level. On a CPU a
-lane costs the same used or not, so levels are cut finely (``CHUNKS`` = 256: measured for the
-Kalman filter + RTS smoother at n = 4, as fast as ``lax.associative_scan`` within 20 %, where 64
-was up to 2.6 times slower); on an accelerator, where the lanes of a step run side by side and a
-step costs its kernel launches, into few wide steps (``CHUNKS`` = 16, not yet measured).
+for a fixed ``CHUNKS``), and the unused lanes add fewer than ``C`` combinations per level. Each
+step also has a fixed cost (the combination's kernels and LAPACK calls, ~0.1 ms for the Kalman
+filter's elements on CPU), so narrow steps trade unused lanes for more steps: on a CPU, where an
+unused lane costs as much as a used one, ``CHUNKS`` = 256 (measured for filter + smoother against
+``lax.associative_scan``, interleaved runs, n = 4 and 20, T = 10^2-10^4: 6-35 % slower per run,
+where ``CHUNKS`` = 16, 64 and 1024 were slower still); on an accelerator, where the lanes of a
+step run side by side, ``CHUNKS`` = 16, few wide steps (not yet measured). The elements are
+packed into one (T, width) array per dtype, so a step gathers and scatters one array each.
 """
 
 from __future__ import annotations
@@ -69,25 +72,52 @@ def schedule(T: int, C: int) -> np.ndarray:
     return np.asarray(steps, np.int32).reshape(-1, 3, C)
 
 
+def _packing(elems):
+    """Functions packing ``elems`` (leading axis T) into one (T, width) array per dtype, and
+    back: a step then gathers and scatters one array per dtype instead of one per leaf."""
+    leaves, treedef = jax.tree.flatten(elems)
+    groups = {}
+    for i, leaf in enumerate(leaves):
+        groups.setdefault(jnp.dtype(leaf.dtype), []).append(i)
+    shapes = [leaf.shape[1:] for leaf in leaves]
+    widths = [math.prod(shape) for shape in shapes]
+
+    def pack(tree):
+        flat = jax.tree.leaves(tree)
+        rows = flat[0].shape[0]
+        return [jnp.concatenate([flat[i].reshape(rows, widths[i]) for i in group], 1)
+                for group in groups.values()]  # fmt: skip
+
+    def unpack(arrays):
+        flat = [None] * len(leaves)
+        for array, group in zip(arrays, groups.values(), strict=True):
+            offsets = np.cumsum([0] + [widths[i] for i in group])
+            for i, start, stop in zip(group, offsets[:-1], offsets[1:], strict=True):
+                flat[i] = array[:, start:stop].reshape(array.shape[0], *shapes[i])
+        return jax.tree.unflatten(treedef, flat)
+
+    return pack, unpack
+
+
 def associative_scan(fn, elems, *, reverse: bool = False):
     """All prefixes ``elems[0] * ... * elems[k]`` (``fn`` batched over the leading axis, as for
     ``lax.associative_scan``; ``reverse=True``: suffixes, ``fn`` still called as ``fn(a, b)``
     with ``a`` the element later in the sequence), by the same combination tree as
     ``lax.associative_scan`` and with the combination compiled once (module docstring)."""
     T = jax.tree.leaves(elems)[0].shape[0]
+    if T < 2:
+        return elems
     if reverse:
         elems = jax.tree.map(lambda a: jnp.flip(a, 0), elems)
-    if T > 1:
-        steps = jnp.asarray(schedule(T, lanes(T, jax.default_backend())))
+    pack, unpack = _packing(elems)
+    steps = jnp.asarray(schedule(T, lanes(T, jax.default_backend())))
 
-        def step(buffer, indices):
-            left, right, out = indices
-            a = jax.tree.map(lambda x: x[left], buffer)
-            b = jax.tree.map(lambda x: x[right], buffer)
-            new = fn(a, b)
-            return jax.tree.map(lambda x, v: x.at[out].set(v, mode="drop"), buffer, new), None
+    def step(buffers, indices):
+        left, right, out = indices
+        new = pack(fn(unpack([x[left] for x in buffers]), unpack([x[right] for x in buffers])))
+        return [x.at[out].set(v, mode="drop") for x, v in zip(buffers, new, strict=True)], None
 
-        elems = jax.lax.scan(step, elems, steps)[0]
+    elems = unpack(jax.lax.scan(step, pack(elems), steps)[0])
     if reverse:
         elems = jax.tree.map(lambda a: jnp.flip(a, 0), elems)
     return elems
