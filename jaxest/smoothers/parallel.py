@@ -56,7 +56,7 @@ class SmootherElement(eqx.Module):
 
 
 def combine(later: SmootherElement, earlier: SmootherElement) -> SmootherElement:
-    """Eq (2); ``lax.associative_scan(reverse=True)`` passes the later stretch first."""
+    """Eq (2); the reverse scan (:func:`jaxest.scan.associative_scan`) passes the later stretch first."""
     E = earlier.E
     return SmootherElement(
         E @ later.E, E @ later.g + earlier.g, symmetrize(E @ later.L @ E.T + earlier.L)
