@@ -1,10 +1,11 @@
 """Sequential against parallel-in-time Kalman filter + RTS smoother (issue 14): the crossover.
 
 For n = 4 and n = 20 states (m = 2 measurements, random stable model), T = 10^2 .. 10^5,
-float64 and float32: compile time, wall time per run (best of 3 after compiling) and the relative
-log-likelihood difference from the float64 sequential filter, for the sequential filter and
-smoother, and the parallel ones in square-root and standard form
-(:func:`jaxest.studies.parallel.timing`). The JSON names the device, so a run on a GPU is
+float64 and float32: compile time, wall time per run (best of 3 after compiling, of 1 at T = 10^5)
+and the relative log-likelihood difference from the float64 sequential filter, for the sequential
+filter and smoother, and the parallel ones in square-root and standard form: the speed grid of
+``python -m jaxest reproduce parallel`` (:func:`jaxest.studies.parallel.speed_grid`), without its
+EM part. The JSON names the device, so a run on a GPU is
 recorded beside the CPU one.
 
     python benchmarks/parallel.py --json parallel.json           # the whole grid
@@ -16,12 +17,12 @@ from __future__ import annotations
 import argparse
 
 import jax
-import jax.numpy as jnp
 
 jax.config.update("jax_enable_x64", True)
 
+from jaxest.progress import Progress  # noqa: E402
 from jaxest.report import device_name, emit_json  # noqa: E402
-from jaxest.studies.parallel import timing  # noqa: E402
+from jaxest.studies.parallel import GRID, QUICK_GRID, speed_grid  # noqa: E402
 
 
 def main(argv=None):
@@ -30,18 +31,14 @@ def main(argv=None):
     parser.add_argument("--quick", action="store_true", help="n = 4 and T <= 10^3 only")
     parser.add_argument("--max-T", type=int, default=100_000, help="largest T (default 10^5)")
     args = parser.parse_args(argv)
-    sizes = [T for T in (100, 1_000, 10_000, 100_000) if T <= (1_000 if args.quick else args.max_T)]
-    states = (4,) if args.quick else (4, 20)
-    rows = []
-    for n in states:
-        for T in sizes:
-            for dtype in (jnp.float64, jnp.float32):
-                new = timing(n, T, dtype)
-                rows += new
-                for r in new:
-                    print(f"n={n} T={T} {r['dtype']} {r['method']}: compile {r['compile_s']:.1f} s,"
-                          f" run {1e3 * r['run_s']:.2f} ms, rel loglik diff "
-                          f"{r['loglik_rel_diff']}", flush=True)  # fmt: skip
+    grid = dict(QUICK_GRID if args.quick else GRID)
+    grid["lengths"] = [T for T in grid["lengths"] if T <= args.max_T]
+    total = len(grid["states"]) * len(grid["lengths"]) * len(grid["dtypes"])
+    with Progress("parallel", total=total) as progress:
+        rows = speed_grid(**grid, progress=progress)
+    for r in rows:
+        print(f"n={r['n']} T={r['T']} {r['dtype']} {r['method']}: compile {r['compile_s']:.1f} s, "
+              f"run {1e3 * r['run_s']:.2f} ms, rel loglik diff {r['loglik_rel_diff']}")  # fmt: skip
     emit_json({"device": device_name(), "rows": rows}, args.json)
 
 

@@ -32,6 +32,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Int
 
 from jaxest._status import Status, StatusFlag
+from jaxest.scan import associative_scan
 
 
 class AbstractResult(eqx.Module):
@@ -128,7 +129,7 @@ def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, k
     elements = jax.vmap(lambda k, y, u: estimator.element(model, k, y, u))(ks, ys, us)
     first = estimator.prior_element(model, prior)
     stacked = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, elements)
-    prefixes = jax.lax.associative_scan(jax.vmap(estimator.combine), stacked)
+    prefixes = associative_scan(jax.vmap(estimator.combine), stacked)
     prefixes = jax.tree.map(lambda a: a[1:], prefixes)
     outputs = jax.vmap(lambda p, k: estimator.output(model, p, k))(prefixes, ks)
     return outputs, jax.tree.map(lambda a: a[-1], prefixes)

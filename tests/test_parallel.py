@@ -232,3 +232,36 @@ def test_twenty_states_square_root_filter_and_parallel_smoother_finish():
         """
     )
     subprocess.run([sys.executable, "-c", code], timeout=240, check=True)
+
+
+def test_study_speed_grid_rows_figure_and_crossover(tmp_path):
+    """The study's speed grid at its smallest size: every method finite and close to the float64
+    sequential log-likelihood, and a figure written."""
+    from jaxest.studies import parallel as study
+
+    rows = study.speed_grid(states=(4,), lengths=(100,), dtypes=("float64", "float32"))
+    assert [(r["dtype"], r["method"]) for r in rows] == [
+        (dtype, method) for dtype in ("float64", "float32") for method in study.METHODS
+    ]
+    for r in rows:
+        assert r["finite"] and r["compile_s"] > 0 and r["run_s"] > 0
+        assert r["loglik_rel_diff"] < (1e-12 if r["dtype"] == "float64" else 1e-5)
+    assert study.speed_figure(rows, tmp_path / "speed.png").stat().st_size > 10_000
+    assert len(study.crossover(rows)) == 4  # two dtypes, two parallel forms
+
+
+def test_study_crossover_is_the_first_length_where_parallel_is_faster():
+    def row(T, method, run_s):
+        return {"n": 4, "T": T, "dtype": "float64", "method": method, "run_s": run_s}
+
+    rows = [row(100, "sequential", 1.0), row(100, "parallel_sqrt", 3.0),
+            row(100, "parallel_standard", 2.0), row(1000, "sequential", 10.0),
+            row(1000, "parallel_sqrt", 5.0), row(1000, "parallel_standard", 20.0)]  # fmt: skip
+    from jaxest.studies.parallel import crossover
+
+    assert crossover(rows) == [
+        {"n": 4, "dtype": "float64", "method": "parallel_sqrt", "crossover_T": 1000,
+         "min_ratio": 0.5, "max_ratio": 3.0},
+        {"n": 4, "dtype": "float64", "method": "parallel_standard", "crossover_T": None,
+         "min_ratio": 2.0, "max_ratio": 2.0},
+    ]  # fmt: skip

@@ -214,7 +214,7 @@ class ParallelElement(eqx.Module):
 
 class ParallelKalmanFilter(AbstractAssociativeEstimator):
     """Parallel-in-time Kalman filter for :class:`~jaxest.LinearGaussian` models (module
-    docstring): ``je.run`` evaluates it with ``lax.associative_scan``, O(log T) depth.
+    docstring): ``je.run`` evaluates it with :func:`jaxest.scan.associative_scan`, O(log T) depth.
 
     ``square_root=True`` (default) combines Cholesky-type factors, eq (4), and updates like
     :class:`~jaxest.SquareRootKF` (Q must be positive definite); ``square_root=False`` uses the

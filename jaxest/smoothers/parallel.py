@@ -26,6 +26,7 @@ import jax.numpy as jnp
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.linalg import after, mm, symmetrize
+from jaxest.scan import associative_scan
 from jaxest.smoothers.rts import SmootherResult, smoother_gain, transition_cross_covariance
 
 
@@ -55,7 +56,7 @@ class SmootherElement(eqx.Module):
 
 
 def combine(later: SmootherElement, earlier: SmootherElement) -> SmootherElement:
-    """Eq (2); ``lax.associative_scan(reverse=True)`` passes the later stretch first."""
+    """Eq (2); the reverse scan (:func:`jaxest.scan.associative_scan`) passes the later stretch first."""
     E = earlier.E
     return SmootherElement(
         E @ later.E, E @ later.g + earlier.g, symmetrize(E @ later.L @ E.T + earlier.L)
@@ -76,7 +77,7 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None):
     elements = jax.tree.map(
         lambda a, b: jnp.concatenate([a, b]), SmootherElement(gains, g, L), last
     )
-    suffixes = jax.lax.associative_scan(jax.vmap(combine), elements, reverse=True)
+    suffixes = associative_scan(jax.vmap(combine), elements, reverse=True)
     status = jax.vmap(finite_status)(suffixes.g, suffixes.L)
     cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
     return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross)

@@ -4,10 +4,11 @@
    (``ParallelKalmanFilter`` + ``rts_smooth(parallel=True)``, square-root and standard forms)
    filter+smoother on a random stable n-state model with m = 2 measurements, float64 and
    float32: compile time, wall time per run (best of a few after compiling) and the relative
-   log-likelihood difference from the float64 sequential filter. The default run covers
-   n = 4, T = 10^2, float32 (compiling the associative scan takes 10-40 s per configuration on
-   a 2-core CPU); ``benchmarks/parallel.py`` runs the whole grid, T = 10^2 .. 10^5, n = 4 and
-   20, float64 and float32.
+   log-likelihood difference from the float64 sequential filter, over the grid :data:`GRID`
+   (T = 10^2 .. 10^5, n = 4 and 20, float64 and float32; ``--quick``: :data:`QUICK_GRID`),
+   with a figure (``speed.png``) and the CPU crossover (the smallest T at which a parallel form
+   beats the sequential one, if any) in the summary. ``benchmarks/parallel.py`` runs the same
+   grid (:func:`speed_grid`) without the EM part.
 2. EM against gradient fitting on a simulated 4-state model (T = 1000): ``je.fit_em`` and
    ``je.fit`` (L-BFGS on the negative log-likelihood of F, H, Q, R with Q, R in Cholesky
    parametrisation) from the same start: iterations, wall time (including compilation), final
@@ -29,6 +30,7 @@ import optax
 from jax.flatten_util import ravel_pytree
 
 import jaxest as je
+from jaxest.plot import save, subplots
 from jaxest.progress import Progress
 from jaxest.report import device_name, markdown_table, timed, write_json
 
@@ -84,6 +86,82 @@ def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> l
             "loglik_rel_diff": rel if np.isfinite(rel) else None,
         })  # fmt: skip
     return rows
+
+
+#: the speed grid: states, sequence lengths, dtypes
+GRID = {"states": (4, 20), "lengths": (100, 1_000, 10_000, 100_000),
+        "dtypes": ("float64", "float32")}  # fmt: skip
+QUICK_GRID = {"states": (4,), "lengths": (100, 1_000), "dtypes": ("float64", "float32")}
+
+
+def speed_grid(states, lengths, dtypes, progress: Progress | None = None) -> list[dict]:
+    """:func:`timing` over the grid (best of 3 runs, of 1 at T >= 10^5)."""
+    rows = []
+    for n in states:
+        for T in lengths:
+            for dtype in dtypes:
+                rows += timing(n, T, jnp.dtype(dtype), repeats=1 if T >= 100_000 else 3)
+                if progress is not None:
+                    progress.advance(f"n={n} T={T} {dtype}")
+    return rows
+
+
+def crossover(rows: list[dict]) -> list[dict]:
+    """For each n, dtype and parallel method: the smallest T at which it ran faster than the
+    sequential filter+smoother (``None``: at no T of the grid) and the range of its time over
+    the sequential one's."""
+    sequential = {(r["n"], r["T"], r["dtype"]): r["run_s"] for r in rows
+                  if r["method"] == "sequential"}  # fmt: skip
+    out = []
+    for n, dtype, method in dict.fromkeys((r["n"], r["dtype"], r["method"]) for r in rows):
+        if method == "sequential":
+            continue
+        ratios = {r["T"]: r["run_s"] / sequential[n, r["T"], dtype] for r in rows
+                  if (r["n"], r["dtype"], r["method"]) == (n, dtype, method)}  # fmt: skip
+        faster = [T for T, ratio in sorted(ratios.items()) if ratio < 1]
+        out.append({"n": n, "dtype": dtype, "method": method,
+                    "crossover_T": faster[0] if faster else None,
+                    "min_ratio": min(ratios.values()), "max_ratio": max(ratios.values())})  # fmt: skip
+    return out
+
+
+def speed_figure(rows: list[dict], path: Path) -> Path:
+    """Wall time per run (solid) and compile time (dashed) against T, log-log: a panel per n
+    and dtype, a line per method."""
+    states = sorted({r["n"] for r in rows})
+    dtypes = list(dict.fromkeys(r["dtype"] for r in rows))
+    fig, axes = subplots(len(states), len(dtypes), width=4.6, height=3.4)
+    for i, n in enumerate(states):
+        for j, dtype in enumerate(dtypes):
+            ax = axes[i, j]
+            for k, method in enumerate(METHODS):
+                mine = sorted((r["T"], r["run_s"], r["compile_s"]) for r in rows
+                              if (r["n"], r["dtype"], r["method"]) == (n, dtype, method))  # fmt: skip
+                T, run_s, compile_s = (np.array(c) for c in zip(*mine, strict=True))
+                ax.plot(T, run_s, "o-", color=f"C{k}", label=f"{method} run")
+                ax.plot(T, compile_s, "x--", color=f"C{k}", alpha=0.6, label=f"{method} compile")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("T (steps)")
+            ax.set_ylabel("seconds")
+            ax.set_title(f"filter + smoother, n = {n}, {dtype}")
+            ax.grid(True, which="major", alpha=0.3)
+    axes[0, 0].legend(fontsize=7)
+    return save(fig, path)
+
+
+def _crossover_text(rows: list[dict], device: str) -> str:
+    lines = []
+    for c in crossover(rows):
+        where = (f"faster from T = {c['crossover_T']}" if c["crossover_T"] is not None
+                 else "slower than the sequential scan at every T")  # fmt: skip
+        lines.append(f"- n = {c['n']}, {c['dtype']}, {c['method']}: {where} "
+                     f"({c['min_ratio']:.1f}-{c['max_ratio']:.1f} times its run time)")  # fmt: skip
+    return (
+        f"Crossover on {device} (run time of the parallel filter + smoother over the "
+        "sequential one's; a CPU with 2 cores has little to run in parallel, so the "
+        "parallel forms are expected to be slower there):\n\n" + "\n".join(lines)
+    )
 
 
 # --- EM against gradient fitting ----------------------------------------------------------
@@ -187,20 +265,23 @@ def em_versus_gradient(T: int, em_iters: int, grad_steps: int, seed: int) -> dic
 
 def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict:
     out_dir = Path(out) / "parallel"
-    configs = [(4, 100, jnp.float32)]
-    with Progress("parallel", total=len(configs) + 1) as progress:
-        speed = []
-        for n, T, dtype in configs:
-            speed += timing(n, T, dtype)
-            progress.advance(f"n={n} T={T} {jnp.dtype(dtype).name}")
+    grid = QUICK_GRID if quick else GRID
+    total = len(grid["states"]) * len(grid["lengths"]) * len(grid["dtypes"]) + 1
+    with Progress("parallel", total=total) as progress:
+        start = time.perf_counter()
+        speed = speed_grid(**grid, progress=progress)
+        speed_s = time.perf_counter() - start
         em = em_versus_gradient(500 if quick else 1000, 100 if quick else 500,
                                 50 if quick else 200, seed)  # fmt: skip
         progress.advance("EM vs gradient")
+    sequential = {(r["n"], r["T"], r["dtype"]): r["run_s"] for r in speed
+                  if r["method"] == "sequential"}  # fmt: skip
     speed_table = markdown_table(
-        ["n", "T", "dtype", "method", "compile s", "run ms", "finite", "rel. loglik diff"],
+        ["n", "T", "dtype", "method", "compile s", "run ms", "× sequential", "finite",
+         "rel. loglik diff"],
         [[r["n"], r["T"], r["dtype"], r["method"], f"{r['compile_s']:.1f}",
-          f"{1e3 * r['run_s']:.2f}", r["finite"],
-          "nan" if r["loglik_rel_diff"] is None else f"{r['loglik_rel_diff']:.1e}"]
+          f"{1e3 * r['run_s']:.2f}", f"{r['run_s'] / sequential[r['n'], r['T'], r['dtype']]:.1f}",
+          r["finite"], "nan" if r["loglik_rel_diff"] is None else f"{r['loglik_rel_diff']:.1e}"]
          for r in speed],
     )  # fmt: skip
     fit_table = markdown_table(
@@ -214,12 +295,17 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
         [[r["invariant"], f"{r['truth']:.3f}", f"{r['em']:.3f}", f"{r['gradient']:.3f}",
           f"{r['se']:.3f}"] for r in em["invariants"]],
     )  # fmt: skip
-    summary = {"device": device_name(), "speed": speed, "em_vs_gradient": em}
+    device = device_name()
+    summary = {"device": device, "speed": speed, "speed_wall_s": speed_s,
+               "crossover": crossover(speed), "em_vs_gradient": em}  # fmt: skip
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / "summary.json", summary)
+    speed_figure(speed, out_dir / "speed.png")
     (out_dir / "summary.md").write_text(
-        f"# Parallel-in-time filtering and EM ({summary['device']})\n\n"
+        f"# Parallel-in-time filtering and EM ({device})\n\n"
         f"## Filter + RTS smoother\n\n{speed_table}\n\n"
+        f"(wall time per run: best of 3 after compiling, of 1 at T = 10^5; the speed grid took "
+        f"{speed_s:.0f} s in all.) ![speed](speed.png)\n\n{_crossover_text(speed, device)}\n\n"
         f"## EM against gradient fitting (T = {em['T']})\n\n{fit_table}\n\n{invariant_table}\n"
     )
     return summary

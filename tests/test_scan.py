@@ -1,0 +1,104 @@
+"""jaxest.scan.associative_scan against lax.associative_scan on non-commutative associative
+operations (2 x 2 matrix products, affine maps), both directions, lengths that are not powers of
+two, under jit, vmap and grad; its schedule covers the Brent-Kung tree once per combination."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxest import scan
+
+LENGTHS = [1, 2, 3, 7, 64, 100, 1000]
+
+
+def matmul(a, b):
+    """a then b, as maps: b @ a."""
+    return b @ a
+
+
+def affine(a, b):
+    """x -> A x + c, a then b: (A_b A_a, A_b c_a + c_b)."""
+    return {"A": b["A"] @ a["A"], "c": b["A"] @ a["c"] + b["c"]}
+
+
+def matrices(T, seed=0):
+    return jnp.asarray(np.random.default_rng(seed).normal(size=(T, 2, 2)) * 0.7)
+
+
+def affine_maps(T, seed=1):
+    rng = np.random.default_rng(seed)
+    return {
+        "A": jnp.asarray(0.6 * rng.normal(size=(T, 3, 3))),
+        "c": jnp.asarray(rng.normal(size=(T, 3))),
+    }
+
+
+def assert_same(actual, desired):
+    for a, d in zip(jax.tree.leaves(actual), jax.tree.leaves(desired), strict=True):
+        np.testing.assert_allclose(a, d, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(d))))
+
+
+@pytest.mark.parametrize("reverse", [False, True], ids=["forward", "reverse"])
+@pytest.mark.parametrize("T", LENGTHS)
+def test_equals_lax_associative_scan(T, reverse):
+    for fn, elems in ((matmul, matrices(T)), (affine, affine_maps(T))):
+        ours = jax.jit(lambda e: scan.associative_scan(jax.vmap(fn), e, reverse=reverse))(elems)
+        assert_same(ours, jax.lax.associative_scan(jax.vmap(fn), elems, reverse=reverse))
+    # and the sequential products themselves (the operation is not commutative)
+    m = np.asarray(matrices(T))
+    prefix = np.eye(2)
+    for k in range(T) if not reverse else range(T - 1, -1, -1):
+        prefix = m[k] @ prefix
+    ours = scan.associative_scan(jax.vmap(matmul), matrices(T), reverse=reverse)
+    np.testing.assert_allclose(ours[-1 if not reverse else 0], prefix, rtol=1e-12, atol=1e-14)
+
+
+@pytest.mark.parametrize("chunks", [2, 16, 1000])
+def test_step_width_does_not_change_the_result(monkeypatch, chunks):
+    """Few wide steps (as on accelerators) or many narrow ones: the same combinations."""
+    monkeypatch.setitem(scan.CHUNKS, "cpu", chunks)
+    for T in (5, 100, 1000):
+        for reverse in (False, True):
+            elems = affine_maps(T)
+            ours = scan.associative_scan(jax.vmap(affine), elems, reverse=reverse)
+            assert_same(ours, jax.lax.associative_scan(jax.vmap(affine), elems, reverse=reverse))
+
+
+@pytest.mark.parametrize("T", [2, 3, 100, 1000, 100_000])
+def test_schedule_is_the_brent_kung_tree_in_few_steps(T):
+    """Every combination of eqs (1)-(2) exactly once, the unused lanes dropped, and at most
+    2 CHUNKS + 2 log2 T steps (O(log T) depth)."""
+    C = scan.lanes(T)
+    steps = scan.schedule(T, C)
+    used = steps[:, 2] < T
+    pairs = sorted(zip(steps[:, 0][used].tolist(), steps[:, 1][used].tolist(), strict=True))
+    expected = []
+    for d in range(int(math.log2(T)) + 1):
+        expected += [(j - 2**d, j) for j in range(2 ** (d + 1) - 1, T, 2 ** (d + 1))]
+        expected += [(j - 2**d, j) for j in range(3 * 2**d - 1, T, 2 ** (d + 1))]
+    assert pairs == sorted(expected)
+    assert np.all(steps[:, 2][~used] == T)
+    assert np.all(steps[:, 1] == np.where(used, steps[:, 2], steps[:, 1]))
+    assert steps.shape[0] <= 2 * scan.CHUNKS["cpu"] + 2 * math.ceil(math.log2(T))
+    for left, _, out in steps:  # a step writes each place once, and none that it reads
+        written = out[out < T].tolist()
+        assert len(set(written)) == len(written)
+        assert not set(written) & set(left.tolist())
+
+
+def test_vmap_and_grad_equal_lax():
+    elems = affine_maps(37)
+    batch = jax.tree.map(lambda a: jnp.stack([a, 2 * a]), elems)
+    ours = jax.vmap(lambda e: scan.associative_scan(jax.vmap(affine), e))(batch)
+    theirs = jax.vmap(lambda e: jax.lax.associative_scan(jax.vmap(affine), e))(batch)
+    assert_same(ours, theirs)
+
+    def loss(scan_fn, e):
+        out = scan_fn(jax.vmap(affine), e, reverse=True)
+        return jnp.sum(out["c"] ** 2) + jnp.sum(jnp.sin(out["A"]))
+
+    assert_same(jax.grad(lambda e: loss(scan.associative_scan, e))(elems),
+                jax.grad(lambda e: loss(jax.lax.associative_scan, e))(elems))  # fmt: skip
