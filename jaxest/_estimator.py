@@ -17,7 +17,7 @@ control, online use) call ``step`` themselves.
 
 An estimator whose steps compose associatively subclasses :class:`AbstractAssociativeEstimator`
 instead: it describes each step as an element and gives the combination rule, and ``run`` then
-uses ``lax.associative_scan`` (O(log T) depth) -- its ``init``/``step`` come from the same
+uses :func:`jaxest.scan.associative_scan` (O(log T) depth) -- its ``init``/``step`` come from the same
 pieces, so the sequential and parallel paths share one implementation.
 """
 
@@ -97,7 +97,7 @@ class AbstractAssociativeEstimator(AbstractEstimator):
     ``combine(earlier, later)`` composes two consecutive stretches, and
     ``output(model, prefix, k)`` reads the step output from the combination of the prior with
     elements 0..k. ``combine`` must be associative; ``run`` then may evaluate all prefixes with
-    ``lax.associative_scan``. The sequential ``init``/``step`` below use the same pieces.
+    :func:`jaxest.scan.associative_scan`. The sequential ``init``/``step`` below use the same pieces.
     """
 
     @abc.abstractmethod

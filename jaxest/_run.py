@@ -3,7 +3,7 @@
 :func:`run` checks the arguments (``estimator.check``, before anything is traced), then scans
 ``estimator.step`` over ``(k, y_k, u_k, key_k)`` with ``lax.scan`` -- or, for an
 :class:`~jaxest.AbstractAssociativeEstimator`, evaluates every prefix with
-``lax.associative_scan`` -- and packs the outputs with ``estimator.result``. What is stored is the
+:func:`jaxest.scan.associative_scan` -- and packs the outputs with ``estimator.result``. What is stored is the
 caller's choice (:class:`SaveAt`): a 10^4-step, 10^4-run study asking for log-likelihoods only
 holds no per-step covariances.
 """
@@ -120,7 +120,7 @@ def run(
         state: resume from this state (e.g. ``result.final_state``) instead of ``prior``;
             ``k0`` is then the index of the first of ``ys`` (the number of steps already done).
         save: what to keep of each step (:class:`SaveAt`; default: the estimator's fields).
-        parallel: ``lax.associative_scan`` (O(log T) depth) instead of ``lax.scan``; only for
+        parallel: :func:`jaxest.scan.associative_scan` (O(log T) depth) instead of ``lax.scan``; only for
             associative estimators, the default for them.
         throw: raise (``eqx.error_if``) if any step's status is not OK, with what to do.
 
