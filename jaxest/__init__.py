@@ -86,7 +86,13 @@ from jaxest.smoothers.steady_state import (
     steady_state_smooth as steady_state_smooth,
 )
 from jaxest.smoothers.wiener import WienerSmoother as WienerSmoother, wiener_smooth as wiener_smooth
-from jaxest.tune import fit as fit, neg_loglik as neg_loglik, supervised_mse as supervised_mse
+from jaxest.tune import (
+    fit as fit,
+    log_variance_standard_errors as log_variance_standard_errors,
+    log_variances as log_variances,
+    neg_loglik as neg_loglik,
+    supervised_mse as supervised_mse,
+)
 
 
 def filter(estimator, model, ys, *args, **kwargs):  # noqa: A001 - the deprecated name

@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 
 from jaxest._run import SaveAt, run
@@ -168,3 +169,30 @@ def supervised_mse(estimator, ys, states, *, prior, inputs=None) -> Callable:
         return jnp.mean((jax.vmap(one)(ys, inputs) - states) ** 2)
 
     return loss
+
+
+def log_variances(model):
+    """theta = [log diag Q, log diag R] of ``model``: the parameters of a ``"log_diagonal"`` fit of
+    Q and R."""
+    return jnp.concatenate(
+        [to_unconstrained(model.Q, "log_diagonal"), to_unconstrained(model.R, "log_diagonal")]
+    )
+
+
+def log_variance_standard_errors(model, loss: Callable, count: int) -> np.ndarray:
+    """Standard errors of :func:`log_variances` of ``model`` from the observed Fisher information.
+
+    The information is the Hessian in theta of ``count * loss(model with Q, R = diag(exp
+    theta))``, where ``loss`` is a mean negative log-likelihood per measurement (as
+    :func:`neg_loglik` returns) and ``count`` is the number of measurements it averages (runs x
+    steps). At a maximum-likelihood fit, (theta - truth) / se is then approximately standard
+    normal.
+    """
+    q = model.Q.shape[-1]
+
+    def total(theta):
+        Q, R = (from_unconstrained(t, "log_diagonal") for t in (theta[:q], theta[q:]))
+        return count * loss(eqx.tree_at(lambda m: (m.Q, m.R), model, (Q, R)))
+
+    information = np.asarray(jax.jit(jax.hessian(total))(log_variances(model)))
+    return np.sqrt(np.diag(np.linalg.inv(information)))

@@ -102,3 +102,36 @@ def test_fit_rejects_unknown_parameters():
         fit(truth, lambda m: 0.0, ["S"])
     with pytest.raises(ValueError, match="params\\['Q'\\]"):
         fit(truth, lambda m: 0.0, {"Q": "eigen"})
+
+
+def test_log_variance_standard_errors_from_a_finite_difference_hessian():
+    """The observed information of [log diag Q, log diag R] against central differences of the
+    total negative log-likelihood (second differences, step 1e-3), on a 2-state model."""
+    jax.config.update("jax_enable_x64", True)
+    F = jnp.array([[0.9, 0.1], [0.0, 0.8]])
+    H = jnp.array([[1.0, 0.0], [0.5, 1.0]])
+    model = je.LinearGaussian(
+        F, H, jnp.diag(jnp.array([0.04, 0.09])), jnp.diag(jnp.array([0.25, 0.16]))
+    )
+    prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
+    ys = monte_carlo(lambda k: je.simulate(model, prior, 60, k), jax.random.key(4), 5).y
+    loss = neg_loglik(KalmanFilter(), ys, prior=prior)
+    count = ys.shape[0] * ys.shape[1]
+    se = je.log_variance_standard_errors(model, loss, count)
+    theta = np.asarray(je.log_variances(model))
+    np.testing.assert_allclose(theta, np.log([0.04, 0.09, 0.25, 0.16]), rtol=1e-14)
+
+    def total(t):
+        Q, R = jnp.diag(jnp.exp(t[:2])), jnp.diag(jnp.exp(t[2:]))
+        return float(count * loss(je.LinearGaussian(F, H, Q, R)))
+
+    h, n = 1e-3, theta.size
+    step = lambda i, s: s * h * np.eye(n)[i]
+    hessian = np.empty((n, n))
+    for i in range(n):
+        for j in range(n):
+            hessian[i, j] = (
+                total(theta + step(i, 1) + step(j, 1)) - total(theta + step(i, 1) - step(j, 1))
+                - total(theta - step(i, 1) + step(j, 1)) + total(theta - step(i, 1) - step(j, 1))
+            ) / (4 * h * h)  # fmt: skip
+    np.testing.assert_allclose(se, np.sqrt(np.diag(np.linalg.inv(hessian))), rtol=1e-4)

@@ -29,7 +29,13 @@ from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.systems import tracking
 from jaxest.systems.ill_conditioned import posterior_error
-from jaxest.tune import fit, from_unconstrained, neg_loglik, supervised_mse, to_unconstrained
+from jaxest.tune import (
+    fit,
+    log_variance_standard_errors,
+    log_variances,
+    neg_loglik,
+    supervised_mse,
+)
 
 DESCRIPTION = "core filters: ill-conditioned robustness of every filter; tuning Q, R by gradient"
 FILTERS = {
@@ -59,27 +65,6 @@ def robustness() -> list[dict]:
                     }
                 )
     return rows
-
-
-def _log_params(model):
-    return jnp.concatenate(
-        [to_unconstrained(model.Q, "log_diagonal"), to_unconstrained(model.R, "log_diagonal")]
-    )
-
-
-def standard_errors(model, ys, prior) -> np.ndarray:
-    """Standard errors of the log-variances (Q then R diagonals) from the observed Fisher
-    information of the total log-likelihood of the batch ``ys``."""
-
-    q = model.Q.shape[0]
-    mean_nll = neg_loglik(KalmanFilter(), ys, prior=prior)  # per run and step
-
-    def total_nll(theta):
-        Q, R = (from_unconstrained(t, "log_diagonal") for t in (theta[:q], theta[q:]))
-        return mean_nll(je.LinearGaussian(model.F, model.H, Q, R)) * ys.shape[0] * ys.shape[1]
-
-    hessian = jax.jit(jax.hessian(total_nll))(_log_params(model))
-    return np.sqrt(np.diag(np.linalg.inv(np.asarray(hessian))))
 
 
 def rmse(model, ys, states, prior) -> float:
@@ -112,7 +97,6 @@ def tuning(runs: int, num_steps: int, seed: int, fit_steps: int) -> dict:
             num_steps=fit_steps,
         ),
     }
-    theta_true = np.asarray(_log_params(truth))
     out = {
         "runs": runs,
         "steps": num_steps,
@@ -132,9 +116,11 @@ def tuning(runs: int, num_steps: int, seed: int, fit_steps: int) -> dict:
             "losses": np.asarray(result.losses),
         }
         out["rmse"][name] = rmse(result.model, test.y, test.states, prior)
-    se = standard_errors(fits["ml"].model, train.y, prior)
+    ml = fits["ml"].model
+    count = train.y.shape[0] * train.y.shape[1]
+    se = log_variance_standard_errors(ml, neg_loglik(KalmanFilter(), train.y, prior=prior), count)
     out["ml"]["standard_errors"] = se
-    out["ml"]["z_scores"] = (np.asarray(_log_params(fits["ml"].model)) - theta_true) / se
+    out["ml"]["z_scores"] = np.asarray(log_variances(ml) - log_variances(truth)) / se
     return out
 
 

@@ -63,7 +63,7 @@ from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.studies import svd_ekf
 from jaxest.systems import bearings, duffing, flight_sim
-from jaxest.tune import fit, from_unconstrained, neg_loglik, to_unconstrained
+from jaxest.tune import fit, log_variance_standard_errors, log_variances, neg_loglik
 
 NAME = "sigma-point"
 DESCRIPTION = "sigma-point, iterated and particle filters on Duffing, flight and bearings-only"
@@ -251,17 +251,7 @@ def tune_duffing(runs: int, T: int, seed: int, steps: int) -> dict:
     params = {"Q": "log_diagonal", "R": "log_diagonal"}
     loss = neg_loglik(UKF(), ys, prior=prior)
     result = fit(start, loss, params, optimizer=optax.lbfgs(), num_steps=steps)
-    theta = lambda m: jnp.concatenate(
-        [to_unconstrained(m.Q, "log_diagonal"), to_unconstrained(m.R, "log_diagonal")]
-    )
-
-    def total_nll(t):
-        Q, R = from_unconstrained(t[:2], "log_diagonal"), from_unconstrained(t[2:], "log_diagonal")
-        model = je.NonlinearGaussian(duffing.Duffing(), duffing.observe, Q, R)
-        return loss(model) * ys.shape[0] * ys.shape[1]
-
-    fitted = theta(result.model)
-    se = np.sqrt(np.diag(np.linalg.inv(np.asarray(jax.hessian(total_nll)(fitted)))))
+    se = log_variance_standard_errors(result.model, loss, ys.shape[0] * ys.shape[1])
     return {
         "runs": runs,
         "steps": T,
@@ -269,7 +259,7 @@ def tune_duffing(runs: int, T: int, seed: int, steps: int) -> dict:
         "start": {"Q_diag": np.diag(start.Q), "R_diag": np.diag(start.R)},
         "fitted": {"Q_diag": np.diag(result.model.Q), "R_diag": np.diag(result.model.R)},
         "standard_errors_log": se,
-        "z_scores": (np.asarray(fitted) - np.asarray(theta(truth))) / se,
+        "z_scores": np.asarray(log_variances(result.model) - log_variances(truth)) / se,
         "loss_first": float(result.losses[0]),
         "loss_last": float(result.losses[-1]),
     }
