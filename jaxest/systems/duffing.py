@@ -18,6 +18,7 @@ from jaxtyping import Array, Float
 
 from jaxest.setmembership.ellipsoid import Ellipsoid
 from jaxest.setmembership.smf import BoundedNoiseModel
+from jaxest.systems._box_noise import simulate_box_noise
 
 #: table 1
 T, K0, KD, C = 0.1, 2.1, 3.0, 0.4
@@ -101,17 +102,6 @@ def simulate(
     y_k = x_k + b_k + v_k, noise uniform in its box (half-widths times ``noise_scale``).
     Returns ``(states, ys)``, each (N, 2)."""
     dynamics = dynamics or Duffing()
-    dtype = bias.dtype
-    x0 = jnp.asarray(X0 if x0 is None else x0, dtype)
-    kw, kv = jax.random.split(key)
-    N = bias.shape[0]
-    wbar, vbar = noise_scale * PROCESS_BOUND, noise_scale * MEASUREMENT_BOUND
-    w = jax.random.uniform(kw, (N, 2), dtype, -wbar, wbar)
-    v = jax.random.uniform(kv, (N, 2), dtype, -vbar, vbar)
-
-    def body(x, w_k):
-        x_next = dynamics(x) + w_k
-        return x_next, x_next
-
-    _, states = jax.lax.scan(body, x0, w)
-    return states, states + bias + v
+    x0 = jnp.asarray(X0 if x0 is None else x0, bias.dtype)
+    bounds = (noise_scale * PROCESS_BOUND, noise_scale * MEASUREMENT_BOUND)
+    return simulate_box_noise(jax.random.split(key), dynamics, observe, x0, bias, *bounds)

@@ -20,6 +20,7 @@ from jaxtyping import Array, Float
 
 from jaxest.setmembership.ellipsoid import Ellipsoid
 from jaxest.setmembership.smf import BoundedNoiseModel
+from jaxest.systems._box_noise import simulate_box_noise
 
 DT, OMEGA2, DAMPING = 0.1, 4.0, 0.2
 PROCESS_BOUND = 0.002
@@ -84,14 +85,5 @@ def simulate(key, bias: Float[Array, "N 3"]):
     x0 = jnp.asarray(X0, dtype) + jnp.sqrt(P0_SCALE) * radius * direction / jnp.linalg.norm(
         direction
     )
-    N = bias.shape[0]
-    w = jax.random.uniform(kw, (N, 2), dtype, -PROCESS_BOUND, PROCESS_BOUND)
-    vbar = jnp.asarray(MEASUREMENT_BOUND, dtype)
-    v = jax.random.uniform(kv, (N, NUM_SENSORS), dtype, -vbar, vbar)
-
-    def body(x, w_k):
-        x_next = transition(x) + w_k
-        return x_next, x_next
-
-    _, states = jax.lax.scan(body, x0, w)
-    return states, jax.vmap(observe)(states) + bias + v
+    bounds = (PROCESS_BOUND, MEASUREMENT_BOUND)
+    return simulate_box_noise((kw, kv), transition, observe, x0, bias, *bounds)
