@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 
 from jaxest.progress import Progress  # noqa: E402
 from jaxest.report import device_name, emit_json  # noqa: E402
-from jaxest.studies.parallel import GRID, QUICK_GRID, speed_grid  # noqa: E402
+from jaxest.studies.parallel import GRID, QUICK_GRID, grid_points, speed_grid  # noqa: E402
 
 
 def main(argv=None):
@@ -33,8 +33,7 @@ def main(argv=None):
     args = parser.parse_args(argv)
     grid = dict(QUICK_GRID if args.quick else GRID)
     grid["lengths"] = [T for T in grid["lengths"] if T <= args.max_T]
-    total = len(grid["states"]) * len(grid["lengths"]) * len(grid["dtypes"])
-    with Progress("parallel", total=total) as progress:
+    with Progress("parallel", total=grid_points(grid)) as progress:
         rows = speed_grid(**grid, progress=progress)
     for r in rows:
         print(f"n={r['n']} T={r['T']} {r['dtype']} {r['method']}: compile {r['compile_s']:.1f} s, "

@@ -25,7 +25,6 @@ _spec.loader.exec_module(flight_nees)
 
 @pytest.fixture(scope="module")
 def setting():
-    jax.config.update("jax_enable_x64", True)
     model = svd_ekf.model_for(10, jnp.float64)
     truth = sim.true_flight("aileron", 10, 2.0)
     batch = svd_ekf.simulated_batch(truth, 1, jax.random.key(3), jnp.float64)

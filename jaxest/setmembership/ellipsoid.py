@@ -298,11 +298,11 @@ def contains(
     n = shape.shape[-1]
     dtype = shape.dtype
     u = unit_roundoff(dtype)
-    scale, C = diagonal_scaling(shape)
+    scale, C, positive = diagonal_scaling(shape)
     y = (x - center) / scale
     w = spd_solve(C, y)
     t = y @ w - gamma(n, dtype) * (jnp.abs(y) @ jnp.abs(w))
-    floor = correlation_floor(C, jnp.all(jnp.diagonal(shape) > 0))
+    floor = correlation_floor(C, positive)
     certified = floor > 0
     floor = jnp.where(certified, floor, 1.0)
     backward = (n**2 * gamma(3 * n + 1, dtype) + 2 * u * n) / floor

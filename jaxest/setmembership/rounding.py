@@ -48,11 +48,13 @@ def gamma(k: int, dtype) -> float:
 
 
 def diagonal_scaling(shape: Float[Array, "n n"]):
-    """``(d, C)``: d = sqrt(|P_ii|) (1 where that is 0) and C = D^-1 P D^-1, D = diag(d), the
-    scaling of eqs O1-O2 and O6."""
-    scale = jnp.sqrt(jnp.abs(jnp.diagonal(shape)))
+    """``(d, C, positive)``: d = sqrt(|P_ii|) (1 where that is 0), C = D^-1 P D^-1, D = diag(d),
+    the scaling of eqs O1-O2 and O6, and whether every P_ii > 0 (what
+    :func:`correlation_floor` needs besides C)."""
+    diagonal = jnp.diagonal(shape)
+    scale = jnp.sqrt(jnp.abs(diagonal))
     scale = jnp.where(scale > 0, scale, 1.0)
-    return scale, shape / scale[:, None] / scale[None, :]
+    return scale, shape / scale[:, None] / scale[None, :], jnp.all(diagonal > 0)
 
 
 def correlation_floor(C: Float[Array, "n n"], positive: Bool[Array, ""]) -> Float[Array, ""]:
@@ -93,8 +95,8 @@ def outward(
     lambda_min(C) is not certified positive the result is +inf on the diagonal (the whole space:
     the filter then reports the set as lost). Zero error bounds return ``shape`` unchanged."""
     n = shape.shape[-1]
-    scale, C = diagonal_scaling(shape)
-    floor = correlation_floor(C, jnp.all(jnp.diagonal(shape) > 0))
+    scale, C, positive = diagonal_scaling(shape)
+    floor = correlation_floor(C, positive)
     u = unit_roundoff(shape.dtype)
     scaled = (shape_error + 2 * u * jnp.abs(shape)) / scale[:, None] / scale[None, :]
     certified = floor > 0

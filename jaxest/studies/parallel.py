@@ -94,6 +94,11 @@ GRID = {"states": (4, 20), "lengths": (100, 1_000, 10_000, 100_000),
 QUICK_GRID = {"states": (4,), "lengths": (100, 1_000), "dtypes": ("float64", "float32")}
 
 
+def grid_points(grid: dict) -> int:
+    """How many (n, T, dtype) configurations ``grid`` holds (one progress step each)."""
+    return len(grid["states"]) * len(grid["lengths"]) * len(grid["dtypes"])
+
+
 def speed_grid(states, lengths, dtypes, progress: Progress | None = None) -> list[dict]:
     """:func:`timing` over the grid (best of 3 runs, of 1 at T >= 10^5)."""
     rows = []
@@ -106,17 +111,23 @@ def speed_grid(states, lengths, dtypes, progress: Progress | None = None) -> lis
     return rows
 
 
+def over_sequential(rows: list[dict]) -> list[float]:
+    """Each row's run time over the sequential filter+smoother's at the same n, T and dtype."""
+    sequential = {(r["n"], r["T"], r["dtype"]): r["run_s"] for r in rows
+                  if r["method"] == "sequential"}  # fmt: skip
+    return [r["run_s"] / sequential[r["n"], r["T"], r["dtype"]] for r in rows]
+
+
 def crossover(rows: list[dict]) -> list[dict]:
     """For each n, dtype and parallel method: the smallest T at which it ran faster than the
     sequential filter+smoother (``None``: at no T of the grid) and the range of its time over
     the sequential one's."""
-    sequential = {(r["n"], r["T"], r["dtype"]): r["run_s"] for r in rows
-                  if r["method"] == "sequential"}  # fmt: skip
+    ratio_of = over_sequential(rows)
     out = []
     for n, dtype, method in dict.fromkeys((r["n"], r["dtype"], r["method"]) for r in rows):
         if method == "sequential":
             continue
-        ratios = {r["T"]: r["run_s"] / sequential[n, r["T"], dtype] for r in rows
+        ratios = {r["T"]: ratio for r, ratio in zip(rows, ratio_of, strict=True)
                   if (r["n"], r["dtype"], r["method"]) == (n, dtype, method)}  # fmt: skip
         faster = [T for T, ratio in sorted(ratios.items()) if ratio < 1]
         out.append({"n": n, "dtype": dtype, "method": method,
@@ -266,23 +277,20 @@ def em_versus_gradient(T: int, em_iters: int, grad_steps: int, seed: int) -> dic
 def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict:
     out_dir = Path(out) / "parallel"
     grid = QUICK_GRID if quick else GRID
-    total = len(grid["states"]) * len(grid["lengths"]) * len(grid["dtypes"]) + 1
-    with Progress("parallel", total=total) as progress:
+    with Progress("parallel", total=grid_points(grid) + 1) as progress:
         start = time.perf_counter()
         speed = speed_grid(**grid, progress=progress)
         speed_s = time.perf_counter() - start
         em = em_versus_gradient(500 if quick else 1000, 100 if quick else 500,
                                 50 if quick else 200, seed)  # fmt: skip
         progress.advance("EM vs gradient")
-    sequential = {(r["n"], r["T"], r["dtype"]): r["run_s"] for r in speed
-                  if r["method"] == "sequential"}  # fmt: skip
     speed_table = markdown_table(
         ["n", "T", "dtype", "method", "compile s", "run ms", "× sequential", "finite",
          "rel. loglik diff"],
         [[r["n"], r["T"], r["dtype"], r["method"], f"{r['compile_s']:.1f}",
-          f"{1e3 * r['run_s']:.2f}", f"{r['run_s'] / sequential[r['n'], r['T'], r['dtype']]:.1f}",
+          f"{1e3 * r['run_s']:.2f}", f"{ratio:.1f}",
           r["finite"], "nan" if r["loglik_rel_diff"] is None else f"{r['loglik_rel_diff']:.1e}"]
-         for r in speed],
+         for r, ratio in zip(speed, over_sequential(speed), strict=True)],
     )  # fmt: skip
     fit_table = markdown_table(
         ["method", "iterations", "wall s", "final loglik"],
