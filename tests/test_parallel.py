@@ -137,23 +137,42 @@ def test_parallel_smoother_equals_sequential_rts(square_root):
     assert bool(par.ok)
 
 
-def test_float32_square_root_at_ten_thousand_steps():
-    """Square-root form in float32 at T = 10^4: finite, log-likelihood within 1e-3 relative of
-    float64 (of the sequential filter); the standard form's figure is in the study."""
+def precise_measurements(T=10_000):
+    """A 4-state model with R = 10^-4 x SPD (P+ much smaller than P-), a prior, T measurements
+    and the float64 sequential filter's log-likelihood."""
     rng = np.random.default_rng(2)
     F, H, Q, R = random_system(rng, 4, 2, stable=0.99)
-    R = R * 1e-4  # precise measurements: P+ much smaller than P-
-    model = je.LinearGaussian(*map(jnp.asarray, (F, H, Q, R)))
+    model = je.LinearGaussian(*map(jnp.asarray, (F, H, Q, R * 1e-4)))
     prior = je.Gaussian(jnp.zeros(4), jnp.eye(4) * 10.0)
-    ys = je.simulate(model, prior, 10_000, jax.random.PRNGKey(2)).y
+    ys = je.simulate(model, prior, T, jax.random.PRNGKey(2)).y
     ref = je.run(je.KalmanFilter(), model, ys, prior=prior, save=je.SaveAt(fields=())).loglik
+    return model, prior, ys, float(ref)
+
+
+def test_float32_at_ten_thousand_steps():
+    """float32 at T = 10^4: the square-root form is finite with its log-likelihood within 1e-3
+    relative of float64 and status OK; the standard form, whose log-likelihood is a difference
+    of large terms, loses it, and its status says so (LOGLIK_INCONSISTENT, eq (5))."""
+    model, prior, ys, ref = precise_measurements()
     f32 = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32), tree)
-    res = je.run(je.ParallelKalmanFilter(), f32(model), ys.astype(jnp.float32), prior=f32(prior),
-                 save=je.SaveAt(fields=("mean", "cov")))  # fmt: skip
+    save = je.SaveAt(fields=("mean", "cov", "status"))
+    results = {
+        square_root: je.run(je.ParallelKalmanFilter(square_root=square_root), f32(model),
+                            ys.astype(jnp.float32), prior=f32(prior), save=save)
+        for square_root in (True, False)
+    }  # fmt: skip
+    res = results[True]
     assert res.loglik.dtype == jnp.float32
     assert np.all(np.isfinite(res.mean)) and np.all(np.isfinite(res.cov))
     assert int(res.any_status) == 0
-    assert abs(float(res.loglik) / float(ref) - 1.0) < 1e-3
+    assert abs(float(res.loglik) / ref - 1.0) < 1e-3
+    standard = results[False]
+    assert abs(float(standard.loglik) / ref - 1.0) > 1e-3  # what the flag is there for
+    assert je.ParallelStatus.describe(standard.any_status) == "LOGLIK_INCONSISTENT"
+    assert isinstance(standard, je.ParallelFilterResult)
+    with pytest.raises(Exception, match="LOGLIK_INCONSISTENT"):
+        je.run(je.ParallelKalmanFilter(square_root=False), f32(model), ys.astype(jnp.float32),
+               prior=f32(prior), save=je.SaveAt(fields=()), throw=True)  # fmt: skip
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32])

@@ -17,7 +17,11 @@ from jaxest.filters.kalman import (
     InformationFilter as InformationFilter,
     KalmanFilter as KalmanFilter,
 )
-from jaxest.filters.parallel import ParallelKalmanFilter as ParallelKalmanFilter
+from jaxest.filters.parallel import (
+    ParallelFilterResult as ParallelFilterResult,
+    ParallelKalmanFilter as ParallelKalmanFilter,
+    ParallelStatus as ParallelStatus,
+)
 from jaxest.filters.particle import (
     AbstractProposal as AbstractProposal,
     GaussianTransition as GaussianTransition,

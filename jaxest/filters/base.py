@@ -150,6 +150,8 @@ class AbstractGaussianFilter(AbstractEstimator):
 
     factor_type: ClassVar[type[AbstractCovarianceFactor]]
     needs_positive_definite_Q: ClassVar[bool] = False
+    #: the result class (a subclass where a filter raises flags of its own)
+    result_type: ClassVar[type[FilterResult]] = FilterResult
     default_fields: ClassVar[tuple[str, ...]] = (
         "predicted_mean", "predicted_cov", "mean", "cov",
         "innovation", "innovation_cov", "loglik", "status",
@@ -172,7 +174,7 @@ class AbstractGaussianFilter(AbstractEstimator):
         return GaussianState(x_next, factor_next, state.loglik + output.loglik), output
 
     def result(self, outputs: StepOutput, final_state: GaussianState) -> FilterResult:
-        return FilterResult(
+        return self.result_type(
             mean=outputs.mean,
             cov=outputs.cov,
             predicted_mean=outputs.predicted_mean,

@@ -60,14 +60,14 @@ def _filter_smoother(filt, parallel: bool):
     def fn(model, prior, ys):
         res = je.run(filt, model, ys, prior=prior)
         smoothed = je.rts_smooth(model, res, parallel=parallel)
-        return res.loglik, smoothed.mean, smoothed.cov
+        return res.loglik, res.any_status, smoothed.mean, smoothed.cov
 
     return fn
 
 
 def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> list[dict]:
-    """Compile and run time of filter+smoother for each method, and its log-likelihood's
-    relative difference from the float64 sequential filter's."""
+    """Compile and run time of filter+smoother for each method, its log-likelihood's relative
+    difference from the float64 sequential filter's, and the filter's status flags."""
     model64, prior64 = random_model(n)
     ys = je.simulate(model64, prior64, T, jax.random.PRNGKey(n)).y
     reference = je.run(je.KalmanFilter(), model64, ys, prior=prior64, save=je.SaveAt(fields=()))
@@ -75,8 +75,9 @@ def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> l
     args = (cast(model64), cast(prior64), ys.astype(dtype))
     rows = []
     for name in methods:
-        compile_s, run_s, (loglik, mean, cov) = timed(
-            _filter_smoother(*METHODS[name]), args, repeats
+        filt, parallel = METHODS[name]
+        compile_s, run_s, (loglik, status, mean, cov) = timed(
+            _filter_smoother(filt, parallel), args, repeats
         )
         finite = bool(jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(cov)))
         rel = abs(float(loglik) / float(reference.loglik) - 1.0)
@@ -84,6 +85,7 @@ def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> l
             "n": n, "T": T, "dtype": jnp.dtype(dtype).name, "method": name,
             "compile_s": compile_s, "run_s": run_s, "finite": finite,
             "loglik_rel_diff": rel if np.isfinite(rel) else None,
+            "status": je.ParallelStatus.describe(status),  # the core's bits and the parallel one
         })  # fmt: skip
     return rows
 
@@ -286,10 +288,11 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
         progress.advance("EM vs gradient")
     speed_table = markdown_table(
         ["n", "T", "dtype", "method", "compile s", "run ms", "× sequential", "finite",
-         "rel. loglik diff"],
+         "rel. loglik diff", "status"],
         [[r["n"], r["T"], r["dtype"], r["method"], f"{r['compile_s']:.1f}",
           f"{1e3 * r['run_s']:.2f}", f"{ratio:.1f}",
-          r["finite"], "nan" if r["loglik_rel_diff"] is None else f"{r['loglik_rel_diff']:.1e}"]
+          r["finite"], "nan" if r["loglik_rel_diff"] is None else f"{r['loglik_rel_diff']:.1e}",
+          r["status"]]
          for r, ratio in zip(speed, over_sequential(speed), strict=True)],
     )  # fmt: skip
     fit_table = markdown_table(
