@@ -82,6 +82,10 @@ from jaxest.riccati import (
     solve_filter_dare as solve_filter_dare,
 )
 from jaxest.smoothers import SmootherResult as SmootherResult, rts_smooth as rts_smooth
+from jaxest.smoothers.iterated import (
+    IteratedSmootherResult as IteratedSmootherResult,
+    iterated_smooth as iterated_smooth,
+)
 from jaxest.smoothers.sigma_point_rts import sigma_point_rts_smooth as sigma_point_rts_smooth
 from jaxest.smoothers.steady_state import (
     arma_innovation_model as arma_innovation_model,
