@@ -254,8 +254,8 @@ def test_twenty_states_square_root_filter_and_parallel_smoother_finish():
 
 
 def test_study_speed_grid_rows_figure_and_crossover(tmp_path):
-    """The study's speed grid at its smallest size: every method finite and close to the float64
-    sequential log-likelihood, and a figure written."""
+    """The study's speed grid at its smallest size: every method finite, status OK and close to
+    the float64 sequential log-likelihood, and a figure written."""
     from jaxest.studies import parallel as study
 
     rows = study.speed_grid(states=(4,), lengths=(100,), dtypes=("float64", "float32"))
@@ -263,7 +263,7 @@ def test_study_speed_grid_rows_figure_and_crossover(tmp_path):
         (dtype, method) for dtype in ("float64", "float32") for method in study.METHODS
     ]
     for r in rows:
-        assert r["finite"] and r["compile_s"] > 0 and r["run_s"] > 0
+        assert r["finite"] and r["status"] == "OK" and r["compile_s"] > 0 and r["run_s"] > 0
         assert r["loglik_rel_diff"] < (1e-12 if r["dtype"] == "float64" else 1e-5)
     assert study.speed_figure(rows, tmp_path / "speed.png").stat().st_size > 10_000
     assert len(study.crossover(rows)) == 4  # two dtypes, two parallel forms

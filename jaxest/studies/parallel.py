@@ -65,7 +65,7 @@ def _filter_smoother(filt, parallel: bool):
     return fn
 
 
-def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> list[dict]:
+def timing(n: int, T: int, dtype, repeats: int = 3) -> list[dict]:
     """Compile and run time of filter+smoother for each method, its log-likelihood's relative
     difference from the float64 sequential filter's, and the filter's status flags."""
     model64, prior64 = random_model(n)
@@ -74,8 +74,7 @@ def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> l
     cast = lambda tree: jax.tree.map(lambda a: a.astype(dtype), tree)
     args = (cast(model64), cast(prior64), ys.astype(dtype))
     rows = []
-    for name in methods:
-        filt, parallel = METHODS[name]
+    for name, (filt, parallel) in METHODS.items():
         compile_s, run_s, (loglik, status, mean, cov) = timed(
             _filter_smoother(filt, parallel), args, repeats
         )
