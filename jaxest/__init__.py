@@ -100,6 +100,28 @@ from jaxest.tune import (
     supervised_mse as supervised_mse,
 )
 
+#: the public API, which the documentation's API reference lists (tests/test_api_reference.py
+#: checks it names every public import above)
+__all__ = [
+    "AbstractAssociativeEstimator", "AbstractCovarianceFactor", "AbstractEstimator",
+    "AbstractGaussianFilter", "AbstractGaussianModel", "AbstractProposal", "AbstractResult",
+    "AbstractSVDFilter", "AbstractSigmaPointFilter", "AdaptiveObserver", "CholeskyFactor",
+    "ContinuousLTV", "Covariance", "CubatureKF", "DiscreteAdaptiveObserver", "DiscreteLTV", "EKF",
+    "EMResult", "FilterResult", "GaussHermiteKF", "Gaussian", "GaussianState", "ImprovedSVDKF",
+    "InformationFilter", "InformationMatrix", "InputEffectiveness", "IteratedEKF",
+    "IteratedSmootherResult", "KalmanFilter", "LinearGaussian", "NonlinearGaussian",
+    "ObserverPrior", "ObserverStatus", "ParallelFilterResult", "ParallelKalmanFilter",
+    "ParallelStatus", "ParticleFilter", "ParticleResult", "ParticleStatus", "RiccatiSolution",
+    "RiccatiStatus", "SVDEKF", "SVDFactor", "SaveAt", "Simulation", "SmootherResult",
+    "SquareRootKF", "Status", "StatusFlag", "SteadyStateGain", "SteadyStateKalmanFilter",
+    "StepOutput", "UKF", "WienerSmoother", "arma_innovation_model", "check_gaussian_arguments",
+    "finite_status", "fit", "fit_em", "iterated_smooth", "log_variance_standard_errors",
+    "log_variances", "lqr_gain", "monte_carlo", "neg_loglik", "raise_if_failed", "rts_smooth",
+    "run", "sigma_point_rts_smooth", "simulate", "solve_care", "solve_dare", "solve_filter_care",
+    "solve_filter_dare", "status_where", "steady_state_gain", "steady_state_smooth",
+    "supervised_mse", "wiener_smooth",
+]  # fmt: skip
+
 
 def filter(estimator, model, ys, *args, **kwargs):  # noqa: A001 - the deprecated name
     """Deprecated alias of :func:`run` (``filter`` shadows a Python builtin)."""
