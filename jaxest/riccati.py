@@ -70,7 +70,6 @@ _SQUARINGS = 40
 #: a closed-loop margin below MARGIN_FACTOR sqrt(eps) is reported as not stabilising
 MARGIN_FACTOR = 10.0
 
-#: the Riccati solvers' status flags: the core's and their own
 RiccatiStatus = Status.extend(
     "RiccatiStatus",
     NOT_STABILISING=(
@@ -87,6 +86,7 @@ RiccatiStatus = Status.extend(
         "precision; use float64 or rescale the states",
     ),
 )
+"""The Riccati solvers' status flags: the core's and their own."""
 
 
 class RiccatiSolution(eqx.Module):

@@ -107,7 +107,6 @@ from jaxest.filters.sqrt_kf import SquareRootKF
 from jaxest.linalg import cholesky, sandwich, solve_triangular, symmetrize, tria, tria_gram
 from jaxest.models import LinearGaussian
 
-#: the parallel Kalman filter's status flags: the core's and LOGLIK_INCONSISTENT
 ParallelStatus = Status.extend(
     "ParallelStatus",
     LOGLIK_INCONSISTENT=(
@@ -117,6 +116,7 @@ ParallelStatus = Status.extend(
         "square-root form (ParallelKalmanFilter(square_root=True)) or float64",
     ),
 )
+"""The parallel Kalman filter's status flags: the core's and LOGLIK_INCONSISTENT."""
 
 
 def loglik_consistency_status(prefix_difference, term, prefix, before) -> jnp.ndarray:

@@ -61,7 +61,6 @@ from jaxest._status import Status, finite_status, status_where
 from jaxest.filters.common import gaussian_loglik, masked_measurement
 from jaxest.linalg import cholesky, solve_triangular, tria
 
-#: the particle filter's status flags: the core's and WEIGHTS_DEGENERATE
 ParticleStatus = Status.extend(
     "ParticleStatus",
     WEIGHTS_DEGENERATE=(
@@ -70,6 +69,7 @@ ParticleStatus = Status.extend(
         "use more particles, a proposal that looks at y_k, or check the measurement for outliers",
     ),
 )
+"""The particle filter's status flags: the core's and WEIGHTS_DEGENERATE."""
 
 RESAMPLING = ("systematic", "stratified", "multinomial")
 

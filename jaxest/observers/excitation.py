@@ -20,7 +20,6 @@ from jaxtyping import Array, Float, Int
 from jaxest._status import Status as CoreStatus
 from jaxest.linalg import symmetrize
 
-#: the observers' status flags: the core's and NOT_EXCITED
 ObserverStatus = CoreStatus.extend(
     "ObserverStatus",
     NOT_EXCITED=(
@@ -29,6 +28,7 @@ ObserverStatus = CoreStatus.extend(
         "corrected; excite the system or hold the estimate",
     ),
 )
+"""The observers' status flags: the core's and NOT_EXCITED."""
 Status = ObserverStatus
 
 
