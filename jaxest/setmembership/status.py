@@ -26,3 +26,4 @@ SetStatus = Status.extend(
         "(not an error; the set is guaranteed again from here on)",
     ),
 )
+"""The set-membership filters' status flags: the core's and their own."""
