@@ -21,6 +21,12 @@ def is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def check_positive_int(name: str, value) -> None:
+    """``value`` is a Python int of at least 1 (a count: runs, iterations)."""
+    if not isinstance(value, int) or value < 1:
+        raise ValueError(f"{name}: must be a positive integer, got {value!r}")
+
+
 def as_array(name: str, value):
     """``value`` as something with a shape; Python numbers and lists become NumPy arrays."""
     if value is None:

@@ -30,14 +30,19 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxest._checks import check_gaussian_arguments, check_gaussian_prior, is_concrete
+from jaxest._checks import (
+    check_gaussian_arguments,
+    check_gaussian_prior,
+    check_positive_int,
+    is_concrete,
+)
 from jaxest._priors import Gaussian
 from jaxest._run import run
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.filters.parallel import ParallelKalmanFilter
 from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
 from jaxest.models import LinearGaussian
-from jaxest.smoothers.rts import rts_smooth
+from jaxest.smoothers.rts import SmootherResult, rts_smooth
 
 #: the parameters fit_em estimates; any of them may be held fixed
 PARAMETERS = ("F", "B", "Q", "H", "D", "R", "prior.mean", "prior.cov")
@@ -60,14 +65,22 @@ class Moments(eqx.Module):
     loglik: Float[Array, ""]
 
 
+def kalman_smooth(
+    model, ys, *, prior, inputs=None, parallel: bool
+) -> tuple[SmootherResult, Float[Array, ""]]:
+    """x(k|T), P(k|T) (a :class:`~jaxest.SmootherResult`) and log p(y) of a linear-Gaussian
+    model: ``KalmanFilter`` and ``rts_smooth``, or with ``parallel`` the square-root
+    ``ParallelKalmanFilter`` and ``rts_smooth(..., parallel=True)``. The E-step below, and each
+    iteration of :func:`~jaxest.iterated_smooth`."""
+    filt = ParallelKalmanFilter() if parallel else KalmanFilter()
+    filtered = run(filt, model, ys, prior=prior, inputs=inputs, parallel=parallel)
+    return rts_smooth(model, filtered, inputs=inputs, parallel=parallel), filtered.loglik
+
+
 def e_step(model, prior, ys, inputs, parallel: bool) -> Moments:
     """Filter and RTS-smooth at the current parameters (in parallel form if ``parallel``)."""
-    if parallel:
-        filtered = run(ParallelKalmanFilter(), model, ys, prior=prior, inputs=inputs)
-    else:
-        filtered = run(KalmanFilter(), model, ys, prior=prior, inputs=inputs, parallel=False)
-    smoothed = rts_smooth(model, filtered, inputs=inputs, parallel=parallel)
-    return Moments(smoothed.mean, smoothed.cov, smoothed.cross_cov, filtered.loglik)
+    smoothed, loglik = kalman_smooth(model, ys, prior=prior, inputs=inputs, parallel=parallel)
+    return Moments(smoothed.mean, smoothed.cov, smoothed.cross_cov, loglik)
 
 
 def regression_stats(mo: Moments, ys, inputs):
@@ -187,8 +200,7 @@ def _check(model, ys, prior, num_iters, fixed, inputs):
         raise ValueError("inputs: fit_em with inputs needs model.B and model.D (zeros to start)")
     if isinstance(fixed, str) or any(name not in PARAMETERS for name in fixed):
         raise ValueError(f"fixed: expected names from {PARAMETERS}, got {fixed!r}")
-    if not isinstance(num_iters, int) or num_iters < 1:
-        raise ValueError(f"num_iters: must be a positive integer, got {num_iters!r}")
+    check_positive_int("num_iters", num_iters)
     check_gaussian_prior(prior, model.F.shape[-1])
     check_gaussian_arguments(model, ys, inputs, prior)
     if is_concrete(ys) and np.any(np.isnan(np.asarray(ys, dtype=np.float64))):

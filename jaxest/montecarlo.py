@@ -27,6 +27,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from jaxest._checks import check_positive_int
+
 RUNS_AXIS = "runs"
 
 
@@ -60,8 +62,7 @@ def monte_carlo(
 
     Returns the outputs with a leading axis of length N (on every host).
     """
-    if not isinstance(num_runs, int) or num_runs < 1:
-        raise ValueError(f"num_runs: must be a positive integer, got {num_runs!r}")
+    check_positive_int("num_runs", num_runs)
     if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
         raise ValueError(f"chunk_size: must be a positive integer or None, got {chunk_size!r}")
     if mesh == "auto":

@@ -119,13 +119,13 @@ ParallelStatus = Status.extend(
 """The parallel Kalman filter's status flags: the core's and LOGLIK_INCONSISTENT."""
 
 
-def loglik_consistency_status(prefix_difference, term, prefix, before) -> jnp.ndarray:
-    """``LOGLIK_INCONSISTENT`` where eq (5) fails: ``prefix_difference`` (loglik(main) -
-    loglik(aux)) differs from the sequential ``term`` by more than sqrt(eps) of the scale."""
+def loglik_consistency_status(prefix, before, term) -> jnp.ndarray:
+    """``LOGLIK_INCONSISTENT`` where eq (5) fails: loglik(main) - loglik(aux) (``prefix`` -
+    ``before``) differs from the sequential ``term`` by more than sqrt(eps) of the scale."""
     tolerance = jnp.sqrt(jnp.finfo(jnp.result_type(term)).eps)
     scale = jnp.abs(prefix) + jnp.abs(before) + jnp.abs(term) + 1
     return status_where(
-        ~(jnp.abs(prefix_difference - term) <= tolerance * scale),
+        ~(jnp.abs(prefix - before - term) <= tolerance * scale),
         ParallelStatus.LOGLIK_INCONSISTENT,
     )
 
@@ -342,9 +342,7 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
         factor = self._factor_type(aux.factor)
         # the input's part of y_k is already removed, so u = None; the prediction is discarded
         _, _, out = self._update.update_predict(model, aux.mean, factor, k, prefix.y, None)
-        inconsistent = loglik_consistency_status(
-            main.loglik - aux.loglik, out.loglik, main.loglik, aux.loglik
-        )
+        inconsistent = loglik_consistency_status(main.loglik, aux.loglik, out.loglik)
         return eqx.tree_at(lambda o: o.status, out, out.status | inconsistent)
 
     def _gaussian(self, prefix: ParallelElement) -> GaussianState:

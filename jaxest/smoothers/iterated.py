@@ -34,14 +34,12 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxest._checks import check_gaussian_arguments, is_concrete
+from jaxest._checks import check_gaussian_arguments, check_positive_int, is_concrete
 from jaxest._priors import Gaussian
-from jaxest._run import run
-from jaxest.filters.kalman import KalmanFilter
-from jaxest.filters.parallel import ParallelKalmanFilter
+from jaxest.em import kalman_smooth
 from jaxest.linalg import mv
 from jaxest.models import AbstractGaussianModel, LinearGaussian
-from jaxest.smoothers.rts import SmootherResult, rts_smooth
+from jaxest.smoothers.rts import SmootherResult
 
 
 class IteratedSmootherResult(eqx.Module):
@@ -82,11 +80,9 @@ def linearise(model: AbstractGaussianModel, trajectory, inputs) -> LinearGaussia
 
 def smooth_linearised(model, trajectory, ys, prior, inputs, parallel: bool):
     """One iteration: the filter and RTS smoother of eq (1) about ``trajectory``."""
-    linear = linearise(model, trajectory, inputs)
     ones = jnp.ones((ys.shape[0], 1), trajectory.dtype)
-    filt = ParallelKalmanFilter() if parallel else KalmanFilter()
-    filtered = run(filt, linear, ys, prior=prior, inputs=ones, parallel=parallel)
-    return rts_smooth(linear, filtered, inputs=ones, parallel=parallel), filtered.loglik
+    linear = linearise(model, trajectory, inputs)
+    return kalman_smooth(linear, ys, prior=prior, inputs=ones, parallel=parallel)
 
 
 @eqx.filter_jit
@@ -137,8 +133,7 @@ def iterated_smooth(
     Returns an :class:`IteratedSmootherResult`.
     """
     check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel)
-    if not isinstance(num_iters, int | np.integer) or isinstance(num_iters, bool) or num_iters < 1:
-        raise ValueError(f"num_iters: must be a positive integer, got {num_iters!r}")
+    check_positive_int("num_iters", num_iters)
     ys = jnp.asarray(ys)
     T, n = ys.shape[0], prior.mean.shape[0]
     dtype = jnp.result_type(prior.mean, ys)
