@@ -10,6 +10,8 @@ covariance tangent dP, the factor tangent dU = 1/2 dP U D^-2, dD = 0, which repr
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
@@ -225,9 +227,29 @@ SMALL_FACTOR = 8
 def cholesky(A):
     """Lower Cholesky factor of SPD ``A`` (last two axes); NaN where ``A`` is not positive
     definite, as LAPACK's. Unrolled over the matrix size up to ``SMALL_FACTOR``."""
-    n = A.shape[-1]
-    if n > SMALL_FACTOR:
+    if A.shape[-1] > SMALL_FACTOR:
         return jnp.linalg.cholesky(A)
+    return _small_cholesky(A)
+
+
+def solve_triangular(L, B, *, lower: bool):
+    """X with L X = B for triangular ``L`` (B a matrix, or a vector); substitution unrolled up
+    to ``SMALL_FACTOR``."""
+    if L.shape[-1] > SMALL_FACTOR:
+        return jax.scipy.linalg.solve_triangular(L, B, lower=lower)
+    if B.ndim == L.ndim - 1:
+        return solve_triangular(L, B[..., None], lower=lower)[..., 0]
+    return _small_solve_triangular(L, B, lower)
+
+
+# The two unrolled kernels carry matrix-level derivatives, written with the same unrolled
+# substitutions: differentiating the unrolled scalar recursions instead wrote the 6 x 3 Kalman
+# filter's value_and_grad as 261 fusions against 81 with LAPACK, and it compiled in 4.7 s
+# against 1.5 s.
+
+
+def _unrolled_cholesky(A):
+    n = A.shape[-1]
     L = [[None] * n for _ in range(n)]
     for j in range(n):
         diag = jnp.sqrt(A[..., j, j] - sum((L[j][k] ** 2 for k in range(j)), 0.0))
@@ -239,21 +261,50 @@ def cholesky(A):
     return jnp.stack(rows, -2)
 
 
-def solve_triangular(L, B, *, lower: bool):
-    """X with L X = B for triangular ``L`` (B a matrix, or a vector); substitution unrolled up
-    to ``SMALL_FACTOR``."""
+def _unrolled_substitution(L, B, lower):
+    """X with L X = B (B a matrix), reading only L's ``lower`` or upper triangle."""
     n = L.shape[-1]
-    if n > SMALL_FACTOR:
-        return jax.scipy.linalg.solve_triangular(L, B, lower=lower)
-    if B.ndim == L.ndim - 1:
-        return solve_triangular(L, B[..., None], lower=lower)[..., 0]
     X = [None] * n
-    order = range(n) if lower else range(n - 1, -1, -1)
-    for i in order:
-        done = [k for k in (range(i) if lower else range(i + 1, n))]
+    for i in range(n) if lower else range(n - 1, -1, -1):
+        done = range(i) if lower else range(i + 1, n)
         acc = B[..., i, :] - sum((L[..., i, k, None] * X[k] for k in done), 0.0)
         X[i] = acc / L[..., i, i, None]
     return jnp.stack(X, -2)
+
+
+@jax.custom_jvp
+def _small_cholesky(A):
+    return _unrolled_cholesky(A)
+
+
+@_small_cholesky.defjvp
+def _small_cholesky_jvp(primals, tangents):
+    """dL = L Phi(L^-1 dA L^-T), Phi = the lower triangle with its diagonal halved (Murray
+    2016, eq 8); dA symmetrised first, as ``jnp.linalg.cholesky``'s derivative does."""
+    (A,), (dA,) = primals, tangents
+    L = _small_cholesky(A)
+    Y = _unrolled_substitution(L, symmetrize(dA), True)
+    S = _unrolled_substitution(L, jnp.swapaxes(Y, -1, -2), True)
+    Phi = jnp.tril(S) - 0.5 * jnp.eye(A.shape[-1], dtype=A.dtype) * S
+    return L, mm(L, Phi)
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
+def _small_solve_triangular(L, B, lower):
+    return _unrolled_substitution(L, B, lower)
+
+
+def _small_solve_triangular_jvp(lower, primals, tangents):
+    """dX = L^-1 (dB - dL X), dL restricted to the triangle that is read."""
+    (L, B), (dL, dB) = primals, tangents
+    X = _small_solve_triangular(L, B, lower)
+    rhs = jnp.zeros_like(X) if isinstance(dB, SymbolicZero) else dB
+    if not isinstance(dL, SymbolicZero):
+        rhs = rhs - mm(jnp.tril(dL) if lower else jnp.triu(dL), X)
+    return X, _unrolled_substitution(L, rhs, lower)
+
+
+_small_solve_triangular.defjvp(_small_solve_triangular_jvp, symbolic_zeros=True)
 
 
 def _qr_lower(X, *, with_q: bool):

@@ -172,6 +172,44 @@ def test_gradient_of_logdet_matches_finite_differences():
     np.testing.assert_allclose(grad, jnp.trace(jnp.linalg.solve(A, dA)), rtol=1e-10)
 
 
+@pytest.mark.parametrize("n", [1, 3, 6])
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_cholesky_and_solve_derivatives_equal_lapacks(n, dtype):
+    """The kernels' own derivative rules against jax's for LAPACK: tangents (a non-symmetric dA
+    is symmetrised by both) and cotangents, both triangles, under vmap; and a second derivative
+    against central differences of the first."""
+    rng = np.random.default_rng(10 + n)
+    A, dA = (jnp.asarray(np.stack([spd(rng, n, 10.0) for _ in range(3)]), dtype) for _ in "12")
+    dA = dA + jnp.asarray(rng.normal(size=dA.shape), dtype) * 0.1
+    B, dB = (jnp.asarray(rng.normal(size=(3, n, 2)), dtype) for _ in "12")
+    tol = 1e-4 if dtype == jnp.float32 else 1e-11
+    ours = jax.vmap(lambda A, dA: jax.jvp(cholesky, (A,), (dA,)))(A, dA)
+    ref = jax.vmap(lambda A, dA: jax.jvp(jnp.linalg.cholesky, (A,), (dA,)))(A, dA)
+    np.testing.assert_allclose(ours[1], ref[1], rtol=tol, atol=tol)
+    for lower in (True, False):
+        L = jnp.linalg.cholesky(A)
+        L = L if lower else jnp.swapaxes(L, -1, -2)
+        dL = jnp.asarray(rng.normal(size=L.shape), dtype)  # full: the other triangle is unread
+        solve_ours = lambda L, B: solve_triangular(L, B, lower=lower)
+        solve_ref = lambda L, B: jax.scipy.linalg.solve_triangular(L, B, lower=lower)
+        tangent = jax.vmap(lambda *a: jax.jvp(solve_ours, a[:2], a[2:])[1])(L, B, dL, dB)
+        tangent_ref = jax.vmap(lambda *a: jax.jvp(solve_ref, a[:2], a[2:])[1])(L, B, dL, dB)
+        np.testing.assert_allclose(tangent, tangent_ref, rtol=tol, atol=tol)
+        loss = lambda solve: lambda L, B, A: jnp.sum(jnp.sin(solve(L, B)) * cholesky(A)[..., :1])
+        grads = jax.jit(jax.grad(loss(solve_ours), argnums=(0, 1, 2)))(L, B, A)
+        grads_ref = jax.grad(loss(solve_ref), argnums=(0, 1, 2))(L, B, A)
+        for g, g_ref in zip(grads, grads_ref, strict=True):
+            np.testing.assert_allclose(g, g_ref, rtol=tol, atol=tol)
+    if dtype == jnp.float64:
+        direction = dA[0] + dA[0].T  # symmetric: a non-symmetric one is read differently
+        logdet_grad = jax.grad(
+            lambda t: jnp.sum(jnp.log(jnp.diagonal(cholesky(A[0] + t * direction))))
+        )
+        step = 1e-5
+        fd = (logdet_grad(step) - logdet_grad(-step)) / (2 * step)
+        np.testing.assert_allclose(jax.grad(logdet_grad)(0.0), fd, rtol=1e-6)
+
+
 @pytest.mark.parametrize("p", [2, 4, 7])
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 def test_tria_is_the_cholesky_factor_of_the_gram_matrix(p, dtype):
