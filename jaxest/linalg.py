@@ -112,8 +112,8 @@ def jacobi_svd(A, sweeps: int | None = None):
     eye = jnp.eye(n, dtype=A.dtype)
     vcols = [jnp.broadcast_to(eye[:, i], (*A.shape[:-2], n)) for i in range(n)]
 
-    def sweep(_, columns):
-        cols, vcols = list(columns[0]), list(columns[1])
+    def sweep(_, carry):
+        cols, vcols = map(list, carry)
         for i in range(n - 1):
             for j in range(i + 1, n):
                 a, b = cols[i], cols[j]
