@@ -140,6 +140,8 @@ def test_jacobians_match_finite_differences():
     both_ends = lambda v: np.asarray(f_jit(x, u + jnp.asarray(np.concatenate([v, v]))))
     G_fd = _central_difference(both_ends, np.zeros(6), 1e-4)
     np.testing.assert_allclose(G, G_fd, rtol=1e-6, atol=1e-8)
+    # the time update reads G off F; the simulator's noise gain differentiates f in the inputs
+    np.testing.assert_allclose(G, model.process_noise(x, u, 0)[0], rtol=1e-13, atol=1e-15)
     h = lambda z: np.asarray(h_jit(jnp.asarray(z), u))
     H_fd = (
         _central_difference(lambda d: h(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale

@@ -58,7 +58,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxest.models import NonlinearGaussian
+from jaxest.models import NonlinearGaussian, at_time
 
 #: standard gravity, m/s^2
 GRAVITY = 9.80665
@@ -193,19 +193,34 @@ class SampleNoiseGain(eqx.Module):
         return jax.jacfwd(both_ends)(jnp.zeros(N_IN, jnp.result_type(xa, u)))
 
 
+class FlightModel(NonlinearGaussian):
+    """The model of :func:`flight_model`: a :class:`~jaxest.NonlinearGaussian` whose time update
+    reads the noise gain off the transition Jacobian. An input sample's noise shifts both ends of
+    the interval exactly as the input biases do (eq 27), so G = df/db_in, the Jacobian's input-bias
+    columns with the parameter rows (which f passes through) set to zero: one linearisation of
+    RK4 gives F and G. The ``noise_gain`` (:class:`SampleNoiseGain`, used by
+    :func:`~jaxest.simulate`) traces RK4 a second time; in the filters that second trace took the
+    EKF's compile (10 runs under ``vmap``, 32 Hz) from 4.9 to 5.8 s."""
+
+    def transition(self, x, u, k):
+        mean, F = self.transition_jacobian(x, u, k)
+        G = F[:, N_KIN : N_KIN + N_IN].at[N_KIN:].set(0.0)
+        return mean, F, G, at_time(self.Q, k)
+
+
 def flight_model(
     dt: float,
     input_std: Float[Array, " 6"],
     output_std: Float[Array, " 6"],
     lever_arms: LeverArms = AT_CG,
     substeps: int = 1,
-) -> NonlinearGaussian:
+) -> FlightModel:
     """The augmented 23-state model (eqs 31-33) with input noise std ``input_std`` (a_x, a_y, a_z in
     m/s^2, p, q, r in rad/s) and measurement noise std ``output_std`` (V in m/s, angles in rad, h in
     m). Its inputs are :func:`interval_inputs` of the measured inputs. The dtype follows the arrays
     given."""
     transition = FlightTransition(dt=float(dt), substeps=substeps)
-    return NonlinearGaussian(
+    return FlightModel(
         f=transition,
         h=FlightObservation(lever_arms),
         Q=jnp.diag(jnp.asarray(input_std) ** 2),
