@@ -88,13 +88,17 @@ def prior_cov(dtype):
     return jnp.asarray(np.diag(std**2), dtype)
 
 
-def simulated_batch(truth: sim.TrueFlight, runs: int, key, dtype, noise_scale: float = 1.0):
+def simulated_batch(
+    truth: sim.TrueFlight, runs: int, key, dtype, noise_scale: float = 1.0,
+    parameter_std=sim.PARAMETER_STD,
+):  # fmt: skip
     """``runs`` corrupted copies of ``truth``: (ys, interval inputs, priors, true states), each
-    with a leading run axis; all in ``dtype``."""
+    with a leading run axis; all in ``dtype``. The sensor parameters are drawn with
+    ``parameter_std`` (a zero holds one at 0)."""
 
     def one(k):
         k_par, k_noise, k_init = jax.random.split(k, 3)
-        params = sim.draw_parameters(k_par, truth.states.dtype)
+        params = sim.draw_parameters(k_par, truth.states.dtype, parameter_std)
         record = sim.corrupt(
             truth, params, k_noise, sim.INPUT_STD * noise_scale, sim.OUTPUT_STD * noise_scale
         )
@@ -123,16 +127,17 @@ NEES_GROUPS = {"all": N_STATE, "kinematic": N_KIN, "parameters": N_STATE - N_KIN
 def nees_by_group(err, cov):
     """NEES of one step for the groups of :data:`NEES_GROUPS`, each with its marginal covariance:
     one batched Cholesky factorisation of P and of P with the parameters ordered first (the
-    leading block of a Cholesky factor is the factor of the leading block of P)."""
-    order = np.r_[N_KIN:N_STATE, 0:N_KIN]
+    leading block of a Cholesky factor is the factor of the leading block of P). The state is the
+    kinematic states followed by the parameters: all 23, or fewer with some pinned."""
+    n = err.shape[-1]
+    order = np.r_[N_KIN:n, 0:N_KIN]
     covs = jnp.stack([cov, cov[order][:, order]])
     errs = jnp.stack([err, err[order]])
     whitened = jax.scipy.linalg.solve_triangular(
         jnp.linalg.cholesky(covs), errs[..., None], lower=True
     )[..., 0]
     squares = whitened**2
-    n_par = N_STATE - N_KIN
-    return jnp.stack([squares[0].sum(), squares[0, :N_KIN].sum(), squares[1, :n_par].sum()])
+    return jnp.stack([squares[0].sum(), squares[0, :N_KIN].sum(), squares[1, : n - N_KIN].sum()])
 
 
 def run_metrics(estimator, model, ys, inputs, mean0, P0, truth, settle: int):
