@@ -231,7 +231,7 @@ def pinned_iterated(maneuver, rate, runs, num_iters, pinned=("lam_beta",), seed=
                 "nees": float(np.mean(average[:, i])),
                 "expected": d,
                 "band_95": list(svd_ekf.nees_band(runs, d)),
-            }  # fmt: skip
+            }
             for i, (g, d) in enumerate(dofs.items())
         }
 

@@ -198,9 +198,10 @@ class FlightModel(NonlinearGaussian):
     reads the noise gain off the transition Jacobian. An input sample's noise shifts both ends of
     the interval exactly as the input biases do (eq 27), so G = df/db_in, the Jacobian's input-bias
     columns with the parameter rows (which f passes through) set to zero: one linearisation of
-    RK4 gives F and G. The ``noise_gain`` (:class:`SampleNoiseGain`, used by
-    :func:`~jaxest.simulate`) traces RK4 a second time; in the filters that second trace took the
-    EKF's compile (10 runs under ``vmap``, 32 Hz) from 4.9 to 5.8 s."""
+    RK4 gives F and G. The ``noise_gain`` (:class:`SampleNoiseGain` of the same f, as
+    :func:`flight_model` builds it; :func:`~jaxest.simulate` uses it) traces RK4 a second time; in
+    the filters that second trace took the EKF's lowering and compiling (10 runs under ``vmap``,
+    32 Hz) from 4.9 to 5.8 s."""
 
     def transition(self, x, u, k):
         mean, F = self.transition_jacobian(x, u, k)
