@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
+from jaxest.models import jacobian_by_linearize
 from jaxest.systems import flight
 from jaxest.systems.flight import GRAVITY, N_KIN, N_STATE
 
@@ -236,8 +237,13 @@ def test_pinned_model_is_the_full_model_with_the_pinned_entries_set():
     G, Q_reduced = reduced.process_noise(z, u, 0)
     np.testing.assert_allclose(G, G_full[np.array(free)])
     np.testing.assert_array_equal(Q_reduced, Q)
-    _, F, _, _ = reduced.transition(z, u, 0)  # the pinned columns are gone from F
+    mean, F, G_step, _ = reduced.transition(z, u, 0)  # the pinned columns are gone from F
     _, F_full, _, _ = full.transition(jnp.asarray(x), u, 0)
     np.testing.assert_allclose(F, F_full[np.ix_(free, free)], atol=1e-12)
+    # the time update reduces the full model's; the reduced f and noise gain agree with it
+    np.testing.assert_allclose(mean, reduced.f(z, u), rtol=1e-15)
+    np.testing.assert_allclose(G_step, G, rtol=1e-13, atol=1e-15)
+    _, F_reduced = jacobian_by_linearize(lambda v: reduced.f(v, u), z)
+    np.testing.assert_allclose(F, F_reduced, rtol=1e-13, atol=1e-13)
     with pytest.raises(ValueError, match="pinned"):
         flight.pin_parameters(full, {"u": 0.0})

@@ -284,6 +284,19 @@ class _PinnedNoiseGain(eqx.Module):
         return self.model.process_noise(self.embed(z), u, 0)[0][np.asarray(self.embed.free)]
 
 
+class _PinnedModel(NonlinearGaussian):
+    """The reduced model of :func:`pin_parameters`. Its time update is the full model's at
+    E z + c, reduced: (E^T f, E^T F E, E^T G, Q), one linearisation of the full model (for a
+    :class:`FlightModel`, one RK4 trace per step, where linearising the reduced f and calling
+    the noise gain would trace it twice)."""
+
+    def transition(self, z, u, k):
+        full, embed = self.transition_fn.model, self.transition_fn.embed
+        free = np.asarray(embed.free)
+        x_next, F, G, Q = full.transition(embed(z), u, k)
+        return x_next[free], F[np.ix_(free, free)], G[free], Q
+
+
 def pin_parameters(model: NonlinearGaussian, pinned: dict[str, float]):
     """``model`` with the sensor parameters named in ``pinned`` held at the given values and
     removed from the state: the reduced state z holds the other entries of x^a (in order),
@@ -304,7 +317,7 @@ def pin_parameters(model: NonlinearGaussian, pinned: dict[str, float]):
         .set(jnp.asarray(list(pinned.values()), jnp.result_type(model.Q)))
     )
     embed = _Embedding(free, full)
-    reduced = NonlinearGaussian(
+    reduced = _PinnedModel(
         f=_PinnedTransition(model, embed),
         h=_PinnedObservation(model, embed),
         Q=model.Q,
