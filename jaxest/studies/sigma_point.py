@@ -113,16 +113,6 @@ class Problem(eqx.Module):
     rmse_states: tuple[int, ...] = eqx.field(static=True)
 
 
-def gaussian_problem(model64, prior64, model, prior, T, runs, key, rmse_states):
-    """Runs drawn in float64 from ``model64`` (x_0 ~ prior), filtered with ``model``/``prior``."""
-    sims = je.monte_carlo(lambda k: je.simulate(model64, prior64, T, k), key, runs)
-    dtype = prior.mean.dtype
-    mean0 = jnp.broadcast_to(prior.mean, (runs, prior.mean.shape[0]))
-    return Problem(
-        model, mean0, prior.cov, sims.y.astype(dtype), None, sims.states.astype(dtype), rmse_states
-    )
-
-
 def duffing_model(dtype, q_scale=1.0, r_scale=1.0):
     Q = q_scale * duffing.PROCESS_BOUND**2 * jnp.eye(2, dtype=dtype)
     R = r_scale * duffing.MEASUREMENT_BOUND**2 * jnp.eye(2, dtype=dtype)
@@ -133,18 +123,32 @@ def duffing_prior(dtype):
     return je.Gaussian(jnp.asarray(duffing.X0, dtype), duffing.P0_SCALE * jnp.eye(2, dtype=dtype))
 
 
-def make_problem(name, dtype, runs, T, key) -> Problem:
-    dt = jnp.dtype(dtype)
-    if name == "duffing":
-        args = (duffing_model(jnp.float64), duffing_prior(jnp.float64))
-        return gaussian_problem(*args, duffing_model(dt), duffing_prior(dt), T, runs, key, (0, 1))
-    if name == "bearings":
-        args = (bearings.model(jnp.float64), bearings.prior(jnp.float64))
-        return gaussian_problem(*args, bearings.model(dt), bearings.prior(dt), T, runs, key, (0, 2))
-    truth = flight_sim.true_flight("elevator", 10, T / 10.0, dtype=jnp.float64)
-    ys, inputs, mean0, states = svd_ekf.simulated_batch(truth, runs, key, dt)
-    model = svd_ekf.model_for(10, dt)
-    return Problem(model, mean0, svd_ekf.prior_cov(dt), ys, inputs, states, (0, 1, 2))
+def make_problems(name, dtypes, runs, T, key) -> dict[str, Problem]:
+    """``name``'s runs, simulated once in float64 (duffing, bearings: x_0 ~ the prior), as the
+    problem of the filters in each of ``dtypes``."""
+    if name == "flight":
+        truth = flight_sim.true_flight("elevator", 10, T / 10.0, dtype=jnp.float64)
+        batch = svd_ekf.simulated_batch(truth, runs, key, jnp.float64)
+
+        def problem(dt):
+            ys, inputs, mean0, states = (a.astype(dt) for a in batch)
+            model, cov0 = svd_ekf.model_for(10, dt), svd_ekf.prior_cov(dt)
+            return Problem(model, mean0, cov0, ys, inputs, states, (0, 1, 2))
+
+    else:
+        model, prior, rmse_states = {
+            "duffing": (duffing_model, duffing_prior, (0, 1)),
+            "bearings": (bearings.model, bearings.prior, (0, 2)),
+        }[name]
+        model64, prior64 = model(jnp.float64), prior(jnp.float64)
+        sims = je.monte_carlo(lambda k: je.simulate(model64, prior64, T, k), key, runs)
+
+        def problem(dt):
+            mean0 = jnp.broadcast_to(prior(dt).mean, (runs, prior64.mean.shape[0]))
+            ys, states = sims.y.astype(dt), sims.states.astype(dt)
+            return Problem(model(dt), mean0, prior(dt).cov, ys, None, states, rmse_states)
+
+    return {dtype: problem(jnp.dtype(dtype)) for dtype in dtypes}
 
 
 def nees(err, cov):
@@ -384,9 +388,8 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     with Progress(NAME, total=len(settings) * len(DTYPES) + 3) as progress:
         for i, (name, (n_runs, T)) in enumerate(settings.items()):
             summary["problems"][name] = {}
-            for dtype in DTYPES:
-                key = jax.random.key(seed + 100 * i)
-                problem = make_problem(name, dtype, n_runs, T, key)
+            problems = make_problems(name, DTYPES, n_runs, T, jax.random.key(seed + 100 * i))
+            for dtype, problem in problems.items():
                 summary["problems"][name][dtype] = evaluate(name, problem, seed + 1, filters)
                 if dtype == "float64":
                     summary["svd_form_difference"][name] = svd_form_difference(problem)
