@@ -144,9 +144,10 @@ def make_problems(name, dtypes, runs, T, key) -> dict[str, Problem]:
         sims = je.monte_carlo(lambda k: je.simulate(model64, prior64, T, k), key, runs)
 
         def problem(dt):
-            mean0 = jnp.broadcast_to(prior(dt).mean, (runs, prior64.mean.shape[0]))
+            prior_dt = prior(dt)
+            mean0 = jnp.broadcast_to(prior_dt.mean, (runs, prior_dt.mean.shape[0]))
             ys, states = sims.y.astype(dt), sims.states.astype(dt)
-            return Problem(model(dt), mean0, prior(dt).cov, ys, None, states, rmse_states)
+            return Problem(model(dt), mean0, prior_dt.cov, ys, None, states, rmse_states)
 
     return {dtype: problem(jnp.dtype(dtype)) for dtype in dtypes}
 
