@@ -51,7 +51,6 @@ from jaxest.smoothers.iterated import iterated_smooth  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
 from jaxest.systems import flight_sim as sim  # noqa: E402
 from jaxest.systems.flight import (  # noqa: E402
-    N_KIN,
     N_STATE,
     OUTPUTS,
     PARAMETERS,
@@ -146,9 +145,14 @@ def summary_of(metrics, expected_all, seconds):
     }
 
 
+def flight_key(maneuver: str, rate: int, seed: int):
+    """The key of one maneuver and rate: both experiments draw the same flights."""
+    return jax.random.fold_in(jax.random.key(seed), 100 * sim.MANEUVERS.index(maneuver) + rate)
+
+
 def nees_attribution(maneuver: str, rate: int, runs: int, passes: int, seed: int = 0) -> dict:
     truth = sim.true_flight(maneuver, rate)
-    key = jax.random.fold_in(jax.random.key(seed), 100 * sim.MANEUVERS.index(maneuver) + rate)
+    key = flight_key(maneuver, rate, seed)
     model, P0 = svd_ekf.model_for(rate, jnp.float64), svd_ekf.prior_cov(jnp.float64)
     batch = svd_ekf.simulated_batch(truth, runs, key, jnp.float64)
     ys, inputs, mean0, states = svd_ekf.own_model_flights(model, batch, jax.random.fold_in(key, 1))
@@ -208,7 +212,7 @@ def pinned_iterated(maneuver, rate, runs, num_iters, pinned=("lam_beta",), seed=
     0), filtered by the EKF and smoothed by the iterated extended smoother: time-averaged NEES
     per group of both, with the 95 % band of a run average, and the smoother's last steps."""
     truth = sim.true_flight(maneuver, rate)
-    key = jax.random.fold_in(jax.random.key(seed), 100 * sim.MANEUVERS.index(maneuver) + rate)
+    key = flight_key(maneuver, rate, seed)
     std = sim.PARAMETER_STD.copy()
     std[[PARAMETERS.index(p) for p in pinned]] = 0.0
     model, P0 = svd_ekf.model_for(rate, jnp.float64), svd_ekf.prior_cov(jnp.float64)
@@ -222,24 +226,13 @@ def pinned_iterated(maneuver, rate, runs, num_iters, pinned=("lam_beta",), seed=
         reduced, ys, inputs, mean0[:, free], P0[np.ix_(free, free)], states[..., free], settle,
         num_iters, min(runs, 10),
     )  # fmt: skip
-    dofs = {"all": len(free), "kinematic": N_KIN, "parameters": len(free) - N_KIN}
-
-    def groups(nees_t):
-        average = np.mean(np.asarray(nees_t), axis=0)  # run average at each time
-        return {
-            g: {
-                "nees": float(np.mean(average[:, i])),
-                "expected": d,
-                "band_95": list(svd_ekf.nees_band(runs, d)),
-            }
-            for i, (g, d) in enumerate(dofs.items())
-        }
-
-    out = {"pinned": list(pinned), "ekf": groups(ekf_t), "iterated_smoother": groups(smoothed_t)}
+    groups = svd_ekf.nees_groups(len(free))
+    summary = lambda nees_t: svd_ekf.nees_summary(np.asarray(nees_t), groups)
+    out = {"pinned": list(pinned), "ekf": summary(ekf_t), "iterated_smoother": summary(smoothed_t)}
     out["iterated_smoother"]["largest_step_per_iteration"] = np.max(changes, axis=0).tolist()
     print(f"{maneuver} {rate} Hz pinned {pinned}: EKF {out['ekf']['all']['nees']:.2f}, "
           f"iterated smoother {out['iterated_smoother']['all']['nees']:.2f} "
-          f"(expected {dofs['all']})", flush=True)  # fmt: skip
+          f"(expected {groups['all']})", flush=True)  # fmt: skip
     return out
 
 

@@ -280,7 +280,8 @@ def _small_cholesky(A):
 @_small_cholesky.defjvp
 def _small_cholesky_jvp(primals, tangents):
     """dL = L Phi(L^-1 dA L^-T), Phi = the lower triangle with its diagonal halved (Murray,
-    "Differentiation of the Cholesky decomposition", 2016); dA symmetrised first, as ``jnp.linalg.cholesky``'s derivative does."""
+    "Differentiation of the Cholesky decomposition", 2016); dA symmetrised first, as
+    ``jnp.linalg.cholesky``'s derivative does."""
     (A,), (dA,) = primals, tangents
     L = _small_cholesky(A)
     Y = _unrolled_substitution(L, symmetrize(dA), True)

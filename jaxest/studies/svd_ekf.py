@@ -129,7 +129,13 @@ def model_for(rate_hz, dtype, noise_scale=1.0, lever_arms=sim.LEVER_ARMS, output
 
 
 #: NEES groups: all 23 states, the 7 kinematic states, the 16 sensor parameters (their dimensions)
-NEES_GROUPS = {"all": N_STATE, "kinematic": N_KIN, "parameters": N_STATE - N_KIN}
+def nees_groups(n: int) -> dict[str, int]:
+    """Degrees of freedom of the NEES groups of an n-entry state: the kinematic states followed
+    by the parameters (all 23, or fewer with some pinned)."""
+    return {"all": n, "kinematic": N_KIN, "parameters": n - N_KIN}
+
+
+NEES_GROUPS = nees_groups(N_STATE)
 
 
 def nees_by_group(err, cov):
@@ -195,13 +201,12 @@ def nees_band(runs: int, dof: int, coverage: float = 0.95) -> tuple[float, float
     return low, chi_square_threshold(runs * dof, tail) / runs
 
 
-def consistency(metrics, use):
-    """Time-averaged NEES per group and NIS per channel over the runs ``use``, with the 95 % band
-    of the run average at one time and the fraction of time steps inside it."""
-    runs = int(np.sum(use))
-    nees_t = metrics["nees_t"][use]  # (runs, T, groups)
+def nees_summary(nees_t, groups=NEES_GROUPS) -> dict:
+    """Time-averaged NEES per group of ``nees_t`` (runs, T, groups), with the 95 % band of the
+    run average at one time and the fraction of time steps inside it."""
+    runs = nees_t.shape[0]
     out = {}
-    for g, (group, dof) in enumerate(NEES_GROUPS.items()):
+    for g, (group, dof) in enumerate(groups.items()):
         average = np.mean(nees_t[..., g], axis=0)  # the run average at each time
         low, high = nees_band(runs, dof)
         out[group] = {
@@ -210,6 +215,12 @@ def consistency(metrics, use):
             "band_95": [low, high],
             "fraction_in_band": float(np.mean((average >= low) & (average <= high))),
         }
+    return out
+
+
+def consistency(metrics, use):
+    """:func:`nees_summary` and the time-averaged NIS per channel over the runs ``use``."""
+    out = nees_summary(metrics["nees_t"][use])
     nis = np.mean(metrics["nis"][use], axis=0)
     out["nis"] = {o: float(nis[i]) for i, o in enumerate(OUTPUTS)}
     return out
