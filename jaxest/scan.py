@@ -24,11 +24,13 @@ combinations of the first level): the first level takes about ``CHUNKS`` / 2 ste
 scan at most 2 ``CHUNKS`` + 2 log2 T steps of ``C`` independent combinations each (O(log T) depth
 for a fixed ``CHUNKS``), and the unused lanes add fewer than ``C`` combinations per level. Each
 step also has a fixed cost (the combination's kernels and LAPACK calls, ~0.1 ms for the Kalman
-filter's elements on CPU), so narrow steps trade unused lanes for more steps: on a CPU, where an
-unused lane costs as much as a used one, ``CHUNKS`` = 256 (measured for filter + smoother against
-``lax.associative_scan``, interleaved runs, n = 4 and 20, T = 10^2-10^4: 6-35 % slower per run,
-where ``CHUNKS`` = 16, 64 and 1024 were slower still); on an accelerator, where the lanes of a
-step run side by side, ``CHUNKS`` = 16, few wide steps (not yet measured). The elements are
+filter's elements on CPU), so narrow steps trade unused lanes for more steps. ``CHUNKS`` = 256,
+measured for filter + smoother (``benchmarks/scan_lanes.py``): on a 2-core CPU, where an unused
+lane costs as much as a used one, it was 6-35 % slower per run than ``lax.associative_scan``
+(interleaved runs, n = 4 and 20, T = 10^2-10^4), and 16, 64 and 1024 were slower still; on an
+NVIDIA H100, where the lanes of a step run side by side, run times for T / C = 4, 16, 64 and 256
+were within 2 % of each other and of ``lax.associative_scan`` (n = 4 and 20, T = 10^4 and 10^5,
+float32), so one value serves both. Other accelerators are not measured. The elements are
 packed into one (T, width) array per dtype, so a step gathers and scatters one array each.
 """
 
@@ -40,18 +42,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-#: T / C by platform (module docstring); other platforms: ``ACCELERATOR_CHUNKS``
-CHUNKS = {"cpu": 256}
-ACCELERATOR_CHUNKS = 16
+#: T / C, the steps the first level is cut into (module docstring)
+CHUNKS = 256
 #: fewest lanes per step
 MIN_LANES = 8
 
 
-def lanes(T: int, platform: str = "cpu") -> int:
-    """``C``, the combinations per step for T >= 2 elements on ``platform`` (module
-    docstring)."""
-    chunks = CHUNKS.get(platform, ACCELERATOR_CHUNKS)
-    return min(T // 2, max(MIN_LANES, 1 << max(0, math.ceil(math.log2(T / chunks)))))
+def lanes(T: int) -> int:
+    """``C``, the combinations per step for T >= 2 elements (module docstring)."""
+    return min(T // 2, max(MIN_LANES, 1 << max(0, math.ceil(math.log2(T / CHUNKS)))))
 
 
 def schedule(T: int, C: int) -> np.ndarray:
@@ -110,7 +109,7 @@ def associative_scan(fn, elems, *, reverse: bool = False):
     if reverse:
         elems = jax.tree.map(lambda a: jnp.flip(a, 0), elems)
     pack, unpack = _packing(elems)
-    steps = jnp.asarray(schedule(T, lanes(T, jax.default_backend())))
+    steps = jnp.asarray(schedule(T, lanes(T)))
 
     def step(buffers, indices):
         left, right, out = indices

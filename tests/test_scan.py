@@ -59,7 +59,7 @@ def test_equals_lax_associative_scan(T, reverse):
 @pytest.mark.parametrize("chunks", [2, 16, 1000])
 def test_step_width_does_not_change_the_result(monkeypatch, chunks):
     """Few wide steps (as on accelerators) or many narrow ones: the same combinations."""
-    monkeypatch.setitem(scan.CHUNKS, "cpu", chunks)
+    monkeypatch.setattr(scan, "CHUNKS", chunks)
     for T in (5, 100, 1000):
         for reverse in (False, True):
             elems = affine_maps(T)
@@ -82,7 +82,7 @@ def test_schedule_is_the_brent_kung_tree_in_few_steps(T):
     assert pairs == sorted(expected)
     assert np.all(steps[:, 2][~used] == T)
     assert np.all(steps[:, 1] == np.where(used, steps[:, 2], steps[:, 1]))
-    assert steps.shape[0] <= 2 * scan.CHUNKS["cpu"] + 2 * math.ceil(math.log2(T))
+    assert steps.shape[0] <= 2 * scan.CHUNKS + 2 * math.ceil(math.log2(T))
     for left, _, out in steps:  # a step writes each place once, and none that it reads
         written = out[out < T].tolist()
         assert len(set(written)) == len(written)
