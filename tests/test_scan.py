@@ -2,7 +2,9 @@
 operations (2 x 2 matrix products, affine maps), both directions, lengths that are not powers of
 two, under jit, vmap and grad; its schedule covers the Brent-Kung tree once per combination."""
 
+import importlib.util
 import math
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -102,3 +104,28 @@ def test_vmap_and_grad_equal_lax():
 
     assert_same(jax.grad(lambda e: loss(scan.associative_scan, e))(elems),
                 jax.grad(lambda e: loss(jax.lax.associative_scan, e))(elems))  # fmt: skip
+
+
+def test_lane_sweep_picks_the_width_fastest_relative_to_the_best():
+    """``benchmarks/scan_lanes.py``: each configuration's times are divided by its fastest, so a
+    slow configuration does not outvote the others, and the width with the least mean wins."""
+    spec = importlib.util.spec_from_file_location(
+        "scan_lanes", Path(__file__).parent.parent / "benchmarks" / "scan_lanes.py"
+    )
+    scan_lanes = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scan_lanes)
+    times = {  # (n, T): run seconds for T / C = 16, 256; lax rows (chunks None) are ignored
+        (4, 10_000): (2.0, 1.0),
+        (20, 10_000): (2.0, 1.0),
+        (20, 100_000): (100.0, 110.0),  # summed seconds would pick 16
+    }
+    rows = [
+        {"n": n, "T": T, "dtype": "float32", "method": "parallel_sqrt", "chunks": c, "run_s": t}
+        for (n, T), pair in times.items()
+        for c, t in zip((16, 256), pair, strict=True)
+    ]
+    rows.append({**rows[0], "chunks": None, "run_s": 0.1})
+    best, means = scan_lanes.best_chunks(rows)
+    assert best == 256
+    assert means[16] == pytest.approx((2.0 + 2.0 + 1.0) / 3)
+    assert means[256] == pytest.approx((1.0 + 1.0 + 1.1) / 3)

@@ -20,6 +20,7 @@
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 
@@ -65,21 +66,31 @@ def _filter_smoother(filt, parallel: bool):
     return fn
 
 
-def timing(n: int, T: int, dtype, repeats: int = 3) -> list[dict]:
-    """Compile and run time of filter+smoother for each method, its log-likelihood's relative
-    difference from the float64 sequential filter's, and the filter's status flags."""
-    model64, prior64 = random_model(n)
-    ys = je.simulate(model64, prior64, T, jax.random.PRNGKey(n)).y
-    reference = je.run(je.KalmanFilter(), model64, ys, prior=prior64, save=je.SaveAt(fields=()))
+@functools.lru_cache(maxsize=4)
+def _problem(n: int, T: int):
+    """:func:`random_model`'s float64 model and prior, T measurements simulated from them and
+    the sequential filter's log-likelihood: simulated once for the dtypes and methods timed."""
+    model, prior = random_model(n)
+    ys = je.simulate(model, prior, T, jax.random.PRNGKey(n)).y
+    reference = je.run(je.KalmanFilter(), model, ys, prior=prior, save=je.SaveAt(fields=()))
+    return model, prior, ys, float(reference.loglik)
+
+
+def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> list[dict]:
+    """Compile and run time of filter+smoother for each of ``methods`` (keys of
+    :data:`METHODS`), its log-likelihood's relative difference from the float64 sequential
+    filter's, and the filter's status flags."""
+    model64, prior64, ys, reference = _problem(n, T)
     cast = lambda tree: jax.tree.map(lambda a: a.astype(dtype), tree)
     args = (cast(model64), cast(prior64), ys.astype(dtype))
     rows = []
-    for name, (filt, parallel) in METHODS.items():
+    for name in methods:
+        filt, parallel = METHODS[name]
         compile_s, run_s, (loglik, status, mean, cov) = timed(
             _filter_smoother(filt, parallel), args, repeats
         )
         finite = bool(jnp.all(jnp.isfinite(mean)) & jnp.all(jnp.isfinite(cov)))
-        rel = abs(float(loglik) / float(reference.loglik) - 1.0)
+        rel = abs(float(loglik) / reference - 1.0)
         rows.append({
             "n": n, "T": T, "dtype": jnp.dtype(dtype).name, "method": name,
             "compile_s": compile_s, "run_s": run_s, "finite": finite,
@@ -100,15 +111,23 @@ def grid_points(grid: dict) -> int:
     return len(grid["states"]) * len(grid["lengths"]) * len(grid["dtypes"])
 
 
-def speed_grid(states, lengths, dtypes, progress: Progress | None = None) -> list[dict]:
-    """:func:`timing` over the grid (best of 3 runs, of 1 at T >= 10^5)."""
-    rows = []
+def speed_rows(states, lengths, dtypes):
+    """:func:`timing` over the grid (best of 3 runs, of 1 at T >= 10^5), one (label, rows) per
+    (n, T, dtype) as it is measured."""
     for n in states:
         for T in lengths:
             for dtype in dtypes:
-                rows += timing(n, T, jnp.dtype(dtype), repeats=1 if T >= 100_000 else 3)
-                if progress is not None:
-                    progress.advance(f"n={n} T={T} {dtype}")
+                repeats = 1 if T >= 100_000 else 3
+                yield f"n={n} T={T} {dtype}", timing(n, T, jnp.dtype(dtype), repeats)
+
+
+def speed_grid(states, lengths, dtypes, progress: Progress | None = None) -> list[dict]:
+    """:func:`speed_rows` as one list."""
+    rows = []
+    for label, new in speed_rows(states, lengths, dtypes):
+        rows += new
+        if progress is not None:
+            progress.advance(label)
     return rows
 
 
