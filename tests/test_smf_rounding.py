@@ -3,6 +3,7 @@ exact rational arithmetic: random ellipsoids of condition number up to 1e12, str
 of the set's extent, boxes, and points of the exact set as close to its boundary as floating
 point allows. Every such point must lie in the computed set, exactly."""
 
+import re
 from fractions import Fraction
 
 import jax
@@ -10,7 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxest import run
 from jaxest.setmembership.ellipsoid import (
+    Ellipsoid,
     add_box,
     add_box_of_segments,
     contains,
@@ -18,6 +21,8 @@ from jaxest.setmembership.ellipsoid import (
     linear_image,
     max_condition,
 )
+from jaxest.setmembership.smf import SetMembershipFilter
+from jaxest.systems import duffing
 
 PROBLEMS = 60  # per dimension
 
@@ -226,3 +231,35 @@ def test_containment_test_never_rejects_an_exact_point(n):
         far = c + (X - c) * (1 + 1e-6)
         if np.linalg.cond(P) < 1e6:
             assert not np.any(test(jnp.asarray(c), jnp.asarray(P), jnp.asarray(far)))
+
+
+def _dot_precisions(fn, *args) -> list[str]:
+    """The precision of every matrix product in ``jax.jit(fn)``'s lowered program ("" where it
+    names none)."""
+    lines = [
+        line for line in jax.jit(fn).lower(*args).as_text().splitlines() if "dot_general" in line
+    ]
+    return [m[1] if (m := re.search(r"precision = \[(\w+), \w+\]", line)) else "" for line in lines]
+
+
+def test_products_are_rounded_in_the_working_precision_on_every_platform():
+    """The bounds assume each product rounds in the working precision; JAX's default for float32
+    products on recent NVIDIA GPUs is TF32 (10 mantissa bits). Every product of the set
+    operations and of the filter step, the model's own included, is traced at "highest", under
+    ``vmap`` too; a product outside them keeps JAX's default, so the check can fail."""
+    dtype = jnp.float32
+    P = jnp.asarray([[2.0, 0.3], [0.3, 1.0]], dtype)
+    c, a = jnp.asarray([0.1, -0.2], dtype), jnp.asarray([1.0, 0.5], dtype)
+    set_operations = [
+        (lambda P: linear_image(2 * P, P), P),
+        (lambda P: add_box_of_segments(P, P), P),
+        (lambda P: intersect_strip(c, P, a, a[0], a[1]), P),
+        (lambda P: contains(c, P, a), P),
+    ]
+    model = duffing.model(closed_form_bound=True, dtype=dtype)
+    prior = Ellipsoid(jnp.asarray(duffing.X0, dtype), 0.01 * jnp.eye(2, dtype=dtype))
+    runs = jax.vmap(lambda ys: run(SetMembershipFilter(), model, ys, prior=prior).shape)
+    for fn, arg in [*set_operations, (runs, jnp.ones((3, 5, 2), dtype))]:
+        precisions = _dot_precisions(fn, arg)
+        assert precisions and set(precisions) == {"HIGHEST"}
+    assert _dot_precisions(lambda P: P @ P, P) == ["DEFAULT"]

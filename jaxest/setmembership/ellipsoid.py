@@ -22,6 +22,7 @@ from jaxest.setmembership.rounding import (
     gamma,
     outward,
     unit_roundoff,
+    working_precision,
 )
 
 
@@ -62,6 +63,7 @@ def add_box(
     return add_box_of_segments(shape, segments, shape_error)
 
 
+@working_precision
 def add_box_of_segments(shape, segments, shape_error=None):
     """E(c, P) + the segments {t s_i : |t| <= 1} (rows of ``segments``) one at a time, each with
     its least-volume p_i (eqs 16-17), then rounded outward (eq O3). Any p_i > 0 gives an outer
@@ -86,6 +88,7 @@ def add_box_of_segments(shape, segments, shape_error=None):
     return outward(shape, error)
 
 
+@working_precision
 def linear_image(matrix: Float[Array, "n n"], shape: Float[Array, "n n"]):
     """``(F P F^T, bound on its rounding error)``: the shape of F E(c, P) = E(F c, F P F^T)
     (eq 15) and gamma_{2n} |F| |P| |F|^T (two products, Higham eq 3.13), to be rounded outward
@@ -96,6 +99,7 @@ def linear_image(matrix: Float[Array, "n n"], shape: Float[Array, "n n"]):
     return image, error
 
 
+@working_precision
 def intersect_strip(
     center: Float[Array, " n"],
     shape: Float[Array, "n n"],
@@ -225,6 +229,7 @@ def _joseph(shape, normal, Ph, g, r_over_g):
     return joseph, error
 
 
+@working_precision
 def strips_ellipsoid(
     normals: Float[Array, "m n"],
     values: Float[Array, " m"],
@@ -281,6 +286,7 @@ def strips_ellipsoid(
     return center, shape, spanning & positive, spanning & (slack < 0)
 
 
+@working_precision
 def contains(
     center: Float[Array, " n"], shape: Float[Array, "n n"], x: Float[Array, " n"]
 ) -> Bool[Array, ""]:

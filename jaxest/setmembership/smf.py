@@ -61,7 +61,7 @@ from jaxest.setmembership.ellipsoid import (
     strips_ellipsoid,
 )
 from jaxest.setmembership.interval import remainder_bound
-from jaxest.setmembership.rounding import whole_space
+from jaxest.setmembership.rounding import whole_space, working_precision
 from jaxest.setmembership.status import SetStatus as Status
 
 
@@ -243,6 +243,7 @@ class SetMembershipFilter(AbstractEstimator):
         shape = add_box(image, model.process_bound + alpha, image_error)  # eqs 16-17, 12-13
         return f_c, shape, alpha
 
+    @working_precision
     def predict(self, model: BoundedNoiseModel, prior: Ellipsoid, u=None, k=0) -> Ellipsoid:
         """The time update of ``prior`` (at step ``k``) alone: the set one step later, without a
         measurement."""
@@ -273,6 +274,7 @@ class SetMembershipFilter(AbstractEstimator):
         c, P, bounded, inconsistent = strips_ellipsoid(H, z, model.measurement_bound, observed)
         return c, P, affine & bounded, affine & inconsistent
 
+    @working_precision
     def step(self, model, state: SMFState, k, y, u, key=None):
         linearised = model.linearise(model.observation, state.center, u, k)
         c, P, empty, alpha_h = self.measurement_update(
