@@ -259,7 +259,8 @@ def test_products_are_rounded_in_the_working_precision_on_every_platform():
     model = duffing.model(closed_form_bound=True, dtype=dtype)
     prior = Ellipsoid(jnp.asarray(duffing.X0, dtype), 0.01 * jnp.eye(2, dtype=dtype))
     runs = jax.vmap(lambda ys: run(SetMembershipFilter(), model, ys, prior=prior).shape)
-    for fn, arg in [*set_operations, (runs, jnp.ones((3, 5, 2), dtype))]:
+    predicted = lambda P: SetMembershipFilter().predict(model, Ellipsoid(c, P)).shape  # noqa: E731
+    for fn, arg in [*set_operations, (predicted, P), (runs, jnp.ones((3, 5, 2), dtype))]:
         precisions = _dot_precisions(fn, arg)
         assert precisions and set(precisions) == {"HIGHEST"}
     assert _dot_precisions(lambda P: P @ P, P) == ["DEFAULT"]

@@ -213,6 +213,7 @@ class SetMembershipFilter(AbstractEstimator):
         )
         return trusted, conditioned
 
+    @working_precision
     def measurement_update(self, model, center, shape, y, u, k, linearised):
         """Eqs 18-36, with h(c) and its Jacobian H at c given (``linearised``); returns
         ``(center, shape, empty, remainder)``."""
@@ -235,6 +236,7 @@ class SetMembershipFilter(AbstractEstimator):
             alpha,
         )
 
+    @working_precision
     def time_update(self, model, center, shape, u, k=0):
         """Eqs 7-17; returns ``(center, shape, remainder)``."""
         f_c, F = model.linearise(model.transition, center, u, k)
@@ -243,7 +245,6 @@ class SetMembershipFilter(AbstractEstimator):
         shape = add_box(image, model.process_bound + alpha, image_error)  # eqs 16-17, 12-13
         return f_c, shape, alpha
 
-    @working_precision
     def predict(self, model: BoundedNoiseModel, prior: Ellipsoid, u=None, k=0) -> Ellipsoid:
         """The time update of ``prior`` (at step ``k``) alone: the set one step later, without a
         measurement."""
@@ -253,6 +254,7 @@ class SetMembershipFilter(AbstractEstimator):
     def check(self, model, ys, inputs, prior) -> None:
         check_smf_arguments(model, ys, prior, inputs)
 
+    @working_precision
     def recovery(self, model, center, y, u, k, linearised):
         """The set the measured strips alone guarantee (eqs R1-R3, docs/papers/smf.md), for a
         filter that lost its set, with h(c) and H at c given (``linearised``); returns
