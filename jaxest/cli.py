@@ -97,6 +97,10 @@ def main(argv: list[str] | None = None) -> int:
             quick=args.quick,
             options={"data": args.data, "printed_747": args.b747_printed},
         )
+        # Release the study's compiled programs: each holds mapped code pages, and one process
+        # running every study reached the kernel's 65530-mapping limit in the eighth
+        # ("LLVM ERROR: Unable to allocate section memory", 36 min in).
+        jax.clear_caches()
         index[name] = {
             "seconds": round(time.perf_counter() - start, 2),
             "dir": str(args.out / name),
