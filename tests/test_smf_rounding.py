@@ -244,9 +244,11 @@ def _dot_precisions(fn, *args) -> list[str]:
 
 def test_products_are_rounded_in_the_working_precision_on_every_platform():
     """The bounds assume each product rounds in the working precision; JAX's default for float32
-    products on recent NVIDIA GPUs is TF32 (10 mantissa bits). Every product of the set
-    operations and of the filter step, the model's own included, is traced at "highest", under
-    ``vmap`` too; a product outside them keeps JAX's default, so the check can fail."""
+    products on recent NVIDIA GPUs is TF32 (10 mantissa bits). With TF32 asked for globally,
+    every product of the set operations and of the filter step, the model's own included, is
+    still traced at "highest", under ``vmap`` too, while a product outside them gets TF32
+    ("HIGH"), so the check can fail. (The global setting is explicit here because importing
+    dynamax sets JAX's to float32 for the whole process.)"""
     dtype = jnp.float32
     P = jnp.asarray([[2.0, 0.3], [0.3, 1.0]], dtype)
     c, a = jnp.asarray([0.1, -0.2], dtype), jnp.asarray([1.0, 0.5], dtype)
@@ -260,7 +262,8 @@ def test_products_are_rounded_in_the_working_precision_on_every_platform():
     prior = Ellipsoid(jnp.asarray(duffing.X0, dtype), 0.01 * jnp.eye(2, dtype=dtype))
     runs = jax.vmap(lambda ys: run(SetMembershipFilter(), model, ys, prior=prior).shape)
     predicted = lambda P: SetMembershipFilter().predict(model, Ellipsoid(c, P)).shape  # noqa: E731
-    for fn, arg in [*set_operations, (predicted, P), (runs, jnp.ones((3, 5, 2), dtype))]:
-        precisions = _dot_precisions(fn, arg)
-        assert precisions and set(precisions) == {"HIGHEST"}
-    assert _dot_precisions(lambda P: P @ P, P) == ["DEFAULT"]
+    with jax.default_matmul_precision("tensorfloat32"):
+        for fn, arg in [*set_operations, (predicted, P), (runs, jnp.ones((3, 5, 2), dtype))]:
+            precisions = _dot_precisions(fn, arg)
+            assert precisions and set(precisions) == {"HIGHEST"}
+        assert _dot_precisions(lambda P: P @ P, P) == ["HIGH"]
