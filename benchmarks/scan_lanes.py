@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 from pathlib import Path
+from unittest import mock
 
 import jax
 
@@ -38,29 +39,12 @@ from jaxest.studies.parallel import timing  # noqa: E402
 PARALLEL = ("parallel_sqrt", "parallel_standard")
 
 
-@contextlib.contextmanager
-def chunks_set(value: int):
-    """:data:`jaxest.scan.CHUNKS` set to ``value`` while inside."""
-    saved = jaxest.scan.CHUNKS
-    jaxest.scan.CHUNKS = value
-    try:
-        yield
-    finally:
-        jaxest.scan.CHUNKS = saved
-
-
-@contextlib.contextmanager
-def lax_associative_scan():
+def lax_associative_scan() -> contextlib.ExitStack:
     """The parallel filter and smoother on ``lax.associative_scan`` while inside."""
-    modules = (jaxest._estimator, jaxest.smoothers.parallel)
-    saved = [module.associative_scan for module in modules]
-    for module in modules:
-        module.associative_scan = jax.lax.associative_scan
-    try:
-        yield
-    finally:
-        for module, scan in zip(modules, saved, strict=True):
-            module.associative_scan = scan
+    stack = contextlib.ExitStack()
+    for module in (jaxest._estimator, jaxest.smoothers.parallel):
+        stack.enter_context(mock.patch.object(module, "associative_scan", jax.lax.associative_scan))
+    return stack
 
 
 def best_chunks(rows: list[dict]) -> tuple[int, dict]:
@@ -101,7 +85,7 @@ def main(argv=None):
     with Progress("scan-lanes", total=total) as progress:
         for n, T, dtype in configs:
             for value in args.chunks:
-                with chunks_set(value):
+                with mock.patch.object(jaxest.scan, "CHUNKS", value):
                     C = jaxest.scan.lanes(T)
                     for r in timing(n, T, jnp.dtype(dtype), args.repeats, PARALLEL):
                         rows.append({**r, "chunks": value, "lanes": C})

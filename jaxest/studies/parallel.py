@@ -21,6 +21,7 @@
 from __future__ import annotations
 
 import functools
+import itertools
 import time
 from pathlib import Path
 
@@ -114,11 +115,9 @@ def grid_points(grid: dict) -> int:
 def speed_rows(states, lengths, dtypes):
     """:func:`timing` over the grid (best of 3 runs, of 1 at T >= 10^5), one (label, rows) per
     (n, T, dtype) as it is measured."""
-    for n in states:
-        for T in lengths:
-            for dtype in dtypes:
-                repeats = 1 if T >= 100_000 else 3
-                yield f"n={n} T={T} {dtype}", timing(n, T, jnp.dtype(dtype), repeats)
+    for n, T, dtype in itertools.product(states, lengths, dtypes):
+        repeats = 1 if T >= 100_000 else 3
+        yield f"n={n} T={T} {dtype}", timing(n, T, jnp.dtype(dtype), repeats)
 
 
 def speed_grid(states, lengths, dtypes, progress: Progress | None = None) -> list[dict]:
