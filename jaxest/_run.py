@@ -24,6 +24,7 @@ from jaxest._estimator import (
     AbstractResult,
     associative_outputs,
 )
+from jaxest.linalg import working_precision_by_default
 
 
 class SaveAt(eqx.Module):
@@ -93,6 +94,7 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel):
     )
 
 
+@working_precision_by_default
 def run(
     estimator: AbstractEstimator,
     model,
@@ -126,7 +128,9 @@ def run(
 
     Arguments are checked before anything is traced: bad input raises ``ValueError`` naming the
     argument. Compiled once per estimator, model structure and shapes; inside a user's ``jit``
-    it inlines. Numerical trouble under ``jit`` shows in ``result.status``.
+    it inlines. Numerical trouble under ``jit`` shows in ``result.status``. Matrix products are
+    traced in full precision (float32 means float32 on GPUs whose default is TF32) unless the
+    caller set one (:func:`jaxest.linalg.working_precision_by_default`).
     """
     if args:
         raise ValueError(

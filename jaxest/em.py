@@ -40,7 +40,7 @@ from jaxest._priors import Gaussian
 from jaxest._run import run
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.filters.parallel import ParallelKalmanFilter
-from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
+from jaxest.linalg import cho_solve_lower, cholesky, symmetrize, working_precision_by_default
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.rts import SmootherResult, rts_smooth
 
@@ -156,6 +156,7 @@ def _fit_em(model, prior, ys, inputs, num_iters: int, fixed: frozenset, parallel
     return EMResult(model, prior, logliks)
 
 
+@working_precision_by_default
 def fit_em(
     model: LinearGaussian,
     ys,

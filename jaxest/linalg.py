@@ -1,4 +1,16 @@
-"""Small linear-algebra pieces shared by the estimators.
+"""Small linear-algebra pieces shared by the estimators, and the precision of their products.
+
+**Matrix products in the working precision.** JAX's default precision for float32 matrix
+products is the platform's: full float32 on CPUs, TF32 (10 mantissa bits) on recent NVIDIA GPUs.
+On an H100, TF32 cost the parallel Kalman filter about two digits of its float32 log-likelihood
+at n = 20, enough to flag the standard form inconsistent, and traced at "highest" it cost no
+time (docs/parallel.md, "Float32 on a GPU"). So every estimator's entry point (``run``, the
+smoothers, ``fit_em``, the Riccati solvers, ``simulate``) is traced under
+:func:`working_precision_by_default`: float32 means float32 unless the caller has chosen a
+precision (``jax.default_matmul_precision(...)`` or the ``jax_default_matmul_precision``
+setting), which is then respected. Code whose correctness rests on the precision (the
+set-membership filter's rounding bounds) uses :func:`working_precision`, which holds whatever
+the caller chose. On a CPU neither changes anything.
 
 The eigen/SVD factorisation P = U diag(D)^2 U^T is not unique when eigenvalues repeat (P0 = c I,
 isotropic Q), and ``jnp.linalg.svd``'s derivative divides by differences of singular values, so it
@@ -15,6 +27,33 @@ import functools
 import jax
 import jax.numpy as jnp
 from jax.custom_derivatives import SymbolicZero
+
+
+def working_precision(fn):
+    """``fn`` traced under ``jax.default_matmul_precision("highest")``: its matrix products, and
+    those of the functions it calls (a model's f and h included), are rounded in the working
+    precision whatever JAX's default on the platform or the caller's choice (module docstring).
+    The precision is fixed when a product is traced, so this holds under ``jit``, ``vmap`` and
+    ``grad`` of ``fn``."""
+    return _traced_at_highest(fn, keep_callers_choice=False)
+
+
+def working_precision_by_default(fn):
+    """As :func:`working_precision`, unless the caller has set a matrix-product precision
+    (``jax.default_matmul_precision(...)`` around the call or the
+    ``jax_default_matmul_precision`` setting): then ``fn`` is traced at the caller's."""
+    return _traced_at_highest(fn, keep_callers_choice=True)
+
+
+def _traced_at_highest(fn, keep_callers_choice: bool):
+    @functools.wraps(fn)
+    def traced_at_working_precision(*args, **kwargs):
+        if keep_callers_choice and jax.config.jax_default_matmul_precision is not None:
+            return fn(*args, **kwargs)
+        with jax.default_matmul_precision("highest"):
+            return fn(*args, **kwargs)
+
+    return traced_at_working_precision
 
 
 def symmetrize(P):

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxest._priors import Gaussian
-from jaxest.linalg import mv
+from jaxest.linalg import mv, working_precision_by_default
 
 
 def at_time(matrix: Array, k, ndim: int = 2) -> Array:
@@ -239,6 +239,7 @@ def gaussian_noise(key, cov):
     return chol @ jax.random.normal(key, cov.shape[:1], dtype=cov.dtype)
 
 
+@working_precision_by_default
 def simulate(
     model: AbstractGaussianModel,
     x0,

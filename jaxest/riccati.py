@@ -59,7 +59,13 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_matrix, is_concrete
 from jaxest._status import Status, status_where
-from jaxest.linalg import cho_solve_lower, cholesky, solve_triangular, symmetrize
+from jaxest.linalg import (
+    cho_solve_lower,
+    cholesky,
+    solve_triangular,
+    symmetrize,
+    working_precision_by_default,
+)
 
 _MAX_ITERATIONS = 100
 #: Newton steps at most: enough to walk from the regularised start down to rounding level in
@@ -366,6 +372,7 @@ def _dare_fwd(A, B, Q, R):
     return (X, converged), (A, B, R, X)
 
 
+@working_precision_by_default
 def _dare_bwd(residuals, cotangents):
     A, B, R, X = residuals
     Xbar, _ = cotangents
@@ -389,6 +396,7 @@ def _care_fwd(A, B, Q, R):
     return (X, converged), (A, B, R, X)
 
 
+@working_precision_by_default
 def _care_bwd(residuals, cotangents):
     A, B, R, X = residuals
     Xbar, _ = cotangents
@@ -495,6 +503,7 @@ def _check_modes(A, B, Q, discrete, wording, tol):
 
 
 # --------------------------------------------------------------------------- public API
+@working_precision_by_default
 def solve_dare(
     A: Float[Array, "n n"], B: Float[Array, "n m"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
 ) -> RiccatiSolution:
@@ -506,6 +515,7 @@ def solve_dare(
     return _solution(A, B, Q, R, X, converged, discrete=True)
 
 
+@working_precision_by_default
 def solve_care(
     A: Float[Array, "n n"], B: Float[Array, "n m"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
 ) -> RiccatiSolution:
@@ -523,6 +533,7 @@ def _transposed_gain(solution: RiccatiSolution) -> RiccatiSolution:
     )
 
 
+@working_precision_by_default
 def solve_filter_dare(
     F: Float[Array, "n n"], H: Float[Array, "m n"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
 ) -> RiccatiSolution:
@@ -536,6 +547,7 @@ def solve_filter_dare(
     return _transposed_gain(_solution(A, B, Q, R, X, converged, discrete=True))
 
 
+@working_precision_by_default
 def solve_filter_care(
     F: Float[Array, "n n"], H: Float[Array, "m n"], Q: Float[Array, "n n"], R: Float[Array, "m m"]
 ) -> RiccatiSolution:

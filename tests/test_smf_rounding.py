@@ -3,7 +3,6 @@ exact rational arithmetic: random ellipsoids of condition number up to 1e12, str
 of the set's extent, boxes, and points of the exact set as close to its boundary as floating
 point allows. Every such point must lie in the computed set, exactly."""
 
-import re
 from fractions import Fraction
 
 import jax
@@ -23,6 +22,7 @@ from jaxest.setmembership.ellipsoid import (
 )
 from jaxest.setmembership.smf import SetMembershipFilter
 from jaxest.systems import duffing
+from tests.lowering import dot_precisions
 
 PROBLEMS = 60  # per dimension
 
@@ -233,15 +233,6 @@ def test_containment_test_never_rejects_an_exact_point(n):
             assert not np.any(test(jnp.asarray(c), jnp.asarray(P), jnp.asarray(far)))
 
 
-def _dot_precisions(fn, *args) -> list[str]:
-    """The precision of every matrix product in ``jax.jit(fn)``'s lowered program ("" where it
-    names none)."""
-    lines = [
-        line for line in jax.jit(fn).lower(*args).as_text().splitlines() if "dot_general" in line
-    ]
-    return [m[1] if (m := re.search(r"precision = \[(\w+), \w+\]", line)) else "" for line in lines]
-
-
 def test_products_are_rounded_in_the_working_precision_on_every_platform():
     """The bounds assume each product rounds in the working precision; JAX's default for float32
     products on recent NVIDIA GPUs is TF32 (10 mantissa bits). With TF32 asked for globally,
@@ -264,6 +255,6 @@ def test_products_are_rounded_in_the_working_precision_on_every_platform():
     predicted = lambda P: SetMembershipFilter().predict(model, Ellipsoid(c, P)).shape  # noqa: E731
     with jax.default_matmul_precision("tensorfloat32"):
         for fn, arg in [*set_operations, (predicted, P), (runs, jnp.ones((3, 5, 2), dtype))]:
-            precisions = _dot_precisions(fn, arg)
+            precisions = dot_precisions(fn, arg)
             assert precisions and set(precisions) == {"HIGHEST"}
-        assert _dot_precisions(lambda P: P @ P, P) == ["HIGH"]
+        assert dot_precisions(lambda P: P @ P, P) == ["HIGH"]

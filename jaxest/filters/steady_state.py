@@ -28,7 +28,7 @@ from jaxest.filters.base import (
     StepOutput,
 )
 from jaxest.filters.common import gaussian_loglik
-from jaxest.linalg import symmetrize
+from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.models import LinearGaussian
 from jaxest.riccati import solve_filter_dare
 
@@ -80,6 +80,7 @@ def check_time_invariant(model) -> None:
             )
 
 
+@working_precision_by_default
 def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
     """Sigma from the filter Riccati equation (eq 5), ``solve_filter_dare(Phi, H, Gamma Q
     Gamma^T, R)``, then K (eq 4) and Q_eps. Concrete (F, H) without a stabilising solution raise

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxest.linalg import symmetrize
+from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.network.structure import (
     CommunicationStructure,
     LargeScaleSystem,
@@ -224,6 +224,7 @@ def _weights(system, S):
     return S
 
 
+@working_precision_by_default
 def design(
     system: LargeScaleSystem,
     structure: CommunicationStructure,
@@ -280,6 +281,7 @@ class SteadyState(eqx.Module):
         return jnp.sum(self.costs)
 
 
+@working_precision_by_default
 def steady_state(
     system: LargeScaleSystem,
     structure: CommunicationStructure,
@@ -349,6 +351,7 @@ def optimal_free_gain(system, structure, P, node):
     return (G - constraint.particular[node]) @ constraint.phi[node].T
 
 
+@working_precision_by_default
 def centralized_steady_state(system: LargeScaleSystem):
     """Steady-state Kalman-Bucy covariance of the whole system (the lower bound on every structure):
     the filter CARE A P + P A^T - P H^T R^{-1} H P + F Q F^T = 0 through ``jaxest.riccati``."""

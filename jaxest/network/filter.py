@@ -26,6 +26,7 @@ from jaxtyping import Array, Float, Int
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._priors import Gaussian
 from jaxest._status import finite_status
+from jaxest.linalg import working_precision_by_default
 from jaxest.models import at_time
 from jaxest.network.structure import (
     CommunicationStructure,
@@ -126,6 +127,7 @@ def heard_offsets(structure: CommunicationStructure) -> list[int]:
     return sorted({int((j - i) % N) for _, i, j in pairs})
 
 
+@working_precision_by_default
 def run_sharded(
     filt: NetworkFilter,
     system: LargeScaleSystem,

@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from jaxest._checks import check_matrix, is_concrete
+from jaxest.linalg import working_precision_by_default
 
 
 def piece_index(switch_times: tuple[float, ...], t) -> Array:
@@ -265,6 +266,7 @@ def draw_initial_state(mean0: Float[Array, "N n"], cov0: Float[Array, "N n n"], 
     return mean0 + jnp.einsum("iab,ib->ia", jnp.linalg.cholesky(cov0), normal)
 
 
+@working_precision_by_default
 def simulate_network(
     system: LargeScaleSystem,
     mean0: Float[Array, "N n"],

@@ -39,7 +39,14 @@ from jaxtyping import Array, Float, Int
 from jaxest._checks import check_matrix
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status as check_finite_status
-from jaxest.linalg import cho_solve_lower, chol_inverse, cholesky, solve_triangular, symmetrize
+from jaxest.linalg import (
+    cho_solve_lower,
+    chol_inverse,
+    cholesky,
+    solve_triangular,
+    symmetrize,
+    working_precision_by_default,
+)
 from jaxest.models import at_time
 from jaxest.observers import excitation
 from jaxest.observers.excitation import ObserverStatus as Status
@@ -563,6 +570,7 @@ class ClosedLoopRun(eqx.Module):
     estimate: AdaptiveResult
 
 
+@working_precision_by_default
 def simulate_closed_loop(
     observer: AdaptiveObserver,
     model: ContinuousLTV,

@@ -15,14 +15,13 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
-from jaxest.linalg import cho_solve_lower, cholesky, symmetrize
+from jaxest.linalg import cho_solve_lower, cholesky, symmetrize, working_precision
 from jaxest.setmembership.rounding import (
     correlation_floor,
     diagonal_scaling,
     gamma,
     outward,
     unit_roundoff,
-    working_precision,
 )
 
 

@@ -30,33 +30,17 @@ The standard model holds only where each product is rounded in the working preci
 default for float32 matrix products is lower on some accelerators (TF32, 10 mantissa bits, on
 recent NVIDIA GPUs, where it cost the parallel Kalman filter about two digits:
 docs/parallel.md), which would put the rounding error far outside gamma_k and the exact set
-outside the computed one. :func:`working_precision` traces the set operations and the filter
-step with float32 products in float32.
+outside the computed one. :func:`jaxest.linalg.working_precision` traces the set operations and
+the filter step with float32 products in float32, whatever the caller's setting.
 """
 
 from __future__ import annotations
-
-import functools
 
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
 from jaxest.linalg import cholesky, inv_spd
-
-
-def working_precision(fn):
-    """``fn`` traced under ``jax.default_matmul_precision("highest")``: its matrix products, and
-    those of the model functions it calls, are rounded in the working precision whatever JAX's
-    default on the platform (module docstring). The precision is fixed when a product is traced,
-    so this holds under ``jit``, ``vmap`` and ``grad`` of ``fn``; on a CPU it changes nothing."""
-
-    @functools.wraps(fn)
-    def traced_at_working_precision(*args, **kwargs):
-        with jax.default_matmul_precision("highest"):
-            return fn(*args, **kwargs)
-
-    return traced_at_working_precision
 
 
 def unit_roundoff(dtype) -> float:

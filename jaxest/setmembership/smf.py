@@ -49,6 +49,7 @@ from jaxtyping import Array, Bool, Float, Int
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._run import run
 from jaxest._status import finite_status as check_finite_status
+from jaxest.linalg import working_precision
 from jaxest.models import call_with_optional
 from jaxest.setmembership.ellipsoid import (
     Ellipsoid,
@@ -61,7 +62,7 @@ from jaxest.setmembership.ellipsoid import (
     strips_ellipsoid,
 )
 from jaxest.setmembership.interval import remainder_bound
-from jaxest.setmembership.rounding import whole_space, working_precision
+from jaxest.setmembership.rounding import whole_space
 from jaxest.setmembership.status import SetStatus as Status
 
 

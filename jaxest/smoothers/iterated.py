@@ -37,7 +37,7 @@ from jaxtyping import Array, Float
 from jaxest._checks import check_gaussian_arguments, check_positive_int, is_concrete
 from jaxest._priors import Gaussian
 from jaxest.em import kalman_smooth
-from jaxest.linalg import mv
+from jaxest.linalg import mv, working_precision_by_default
 from jaxest.models import AbstractGaussianModel, LinearGaussian
 from jaxest.smoothers.rts import SmootherResult
 
@@ -104,6 +104,7 @@ def _iterated_smooth(model, ys, prior, inputs, initial, num_iters: int, parallel
     return IteratedSmootherResult(smoothed, loglik, changes)
 
 
+@working_precision_by_default
 def iterated_smooth(
     model: AbstractGaussianModel,
     ys,

@@ -17,7 +17,15 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
-from jaxest.linalg import cho_solve_lower, cholesky, mm, mv, sandwich, symmetrize
+from jaxest.linalg import (
+    cho_solve_lower,
+    cholesky,
+    mm,
+    mv,
+    sandwich,
+    symmetrize,
+    working_precision_by_default,
+)
 
 
 class SmootherResult(eqx.Module):
@@ -41,6 +49,7 @@ class SmootherResult(eqx.Module):
 NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
 
 
+@working_precision_by_default
 def rts_smooth(
     model, result: FilterResult, *, inputs=None, parallel: bool = False
 ) -> SmootherResult:

@@ -20,9 +20,11 @@ import jax.numpy as jnp
 
 from jaxest.filters.base import FilterResult
 from jaxest.filters.sigma_point import AbstractSigmaPointFilter
+from jaxest.linalg import working_precision_by_default
 from jaxest.smoothers.rts import NEEDED, SmootherResult, backward_pass
 
 
+@working_precision_by_default
 def sigma_point_rts_smooth(
     model, result: FilterResult, filter: AbstractSigmaPointFilter, *, inputs=None
 ) -> SmootherResult:

@@ -25,6 +25,7 @@ from jaxtyping import Array, Float
 from jaxest._priors import Gaussian
 from jaxest._run import run
 from jaxest.filters.steady_state import SteadyStateGain, SteadyStateKalmanFilter, steady_state_gain
+from jaxest.linalg import working_precision_by_default
 from jaxest.models import LinearGaussian
 
 
@@ -74,6 +75,7 @@ def fixed_point_gains(gain: SteadyStateGain, count: int) -> Float[Array, "count 
     return gains
 
 
+@working_precision_by_default
 def fixed_point_smooth(
     gain: SteadyStateGain, filtered_mean: Float[Array, " n"], later_innovations: Float[Array, "L m"]
 ) -> Float[Array, "L+1 n"]:
@@ -111,6 +113,7 @@ class SteadyStateSmootherResult(eqx.Module):
     innovation: Float[Array, "T m"]
 
 
+@working_precision_by_default
 def steady_state_smooth(
     model: LinearGaussian,
     ys: Float[Array, "T m"],

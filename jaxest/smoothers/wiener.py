@@ -35,6 +35,7 @@ from jaxtyping import Array, Float
 
 from jaxest._priors import Gaussian
 from jaxest.filters.steady_state import SteadyStateGain, steady_state_gain
+from jaxest.linalg import working_precision_by_default
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.steady_state import (
     ArmaInnovationModel,
@@ -168,6 +169,7 @@ class WienerSmoother(eqx.Module):
         return optimal + jnp.stack(deltas)
 
 
+@working_precision_by_default
 def wiener_smooth(
     model: LinearGaussian,
     ys: Float[Array, "T m"],
