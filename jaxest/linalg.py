@@ -10,7 +10,11 @@ smoothers, ``fit_em``, the Riccati solvers, ``simulate``) is traced under
 precision (``jax.default_matmul_precision(...)`` or the ``jax_default_matmul_precision``
 setting), which is then respected. Code whose correctness rests on the precision (the
 set-membership filter's rounding bounds) uses :func:`working_precision`, which holds whatever
-the caller chose. On a CPU neither changes anything.
+the caller chose. The precision is fixed when a product is traced: a ``custom_vjp`` backward
+rule, traced after its forward call has returned, carries the decorator itself (the Riccati
+solvers' implicit gradients), and a loop of one's own over ``estimator.step`` is traced at
+whatever precision surrounds it. On a CPU neither changes anything: XLA compiles the same
+program whatever the products' precision attribute (checked on the flight EKF).
 
 The eigen/SVD factorisation P = U diag(D)^2 U^T is not unique when eigenvalues repeat (P0 = c I,
 isotropic Q), and ``jnp.linalg.svd``'s derivative divides by differences of singular values, so it
