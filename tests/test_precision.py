@@ -7,6 +7,8 @@ lowered program, so they run on any platform: with no precision chosen every pro
 jaxest's products.
 """
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -29,6 +31,7 @@ def _problem():
     return je.LinearGaussian(F, H, Q, R), prior
 
 
+@functools.cache
 def _entry_points():
     model, prior = _problem()
     loglik = lambda est, mdl, ys: je.run(est, mdl, ys, prior=prior).loglik  # noqa: E731
@@ -59,5 +62,7 @@ def test_products_are_full_precision_unless_the_caller_chose(name):
         precisions = dot_precisions(fn, ys)
         assert precisions and set(precisions) == {"HIGHEST"}
         assert dot_precisions(lambda P: P @ P, jnp.eye(N, dtype=jnp.float32)) == ["DEFAULT"]
-    with jax.default_matmul_precision("tensorfloat32"):  # the caller's choice is kept (JAX's own
-        assert "HIGH" in dot_precisions(fn, ys)  # linear solves' derivatives ask for HIGHEST)
+    # the caller's choice is kept ("in", not "==": JAX's own linear solves' derivatives ask for
+    # HIGHEST whatever the setting)
+    with jax.default_matmul_precision("tensorfloat32"):
+        assert "HIGH" in dot_precisions(fn, ys)
