@@ -241,8 +241,12 @@ def test_state_only_functions_scalar_measurements_and_predicted_sets():
         fields = ("center", "shape", "status", "predicted_center", "predicted_shape")
         ours = set_membership_filter(short, ys, prior=prior, save=je.SaveAt(fields=fields))
         reference = set_membership_filter(full, ys[:, None], prior=prior)
-        np.testing.assert_allclose(ours.shape, reference.shape, rtol=1e-13)
-        np.testing.assert_allclose(ours.center, reference.center, rtol=1e-13)
+        # Two programs, which XLA may fuse and round differently: after 40 steps of strip
+        # intersections the shapes differed by up to 5e-13 (relative) under the suite's compile
+        # flags (jaxest.xla_flags), under 1e-13 without them; a wrong bound or function moves them
+        # by more than 1e-6.
+        np.testing.assert_allclose(ours.shape, reference.shape, rtol=1e-11)
+        np.testing.assert_allclose(ours.center, reference.center, rtol=1e-11)
         assert reference.predicted_shape is None  # not kept unless asked for
         np.testing.assert_array_equal(ours.predicted_shape[0], prior.shape)
         smf = SetMembershipFilter()

@@ -205,4 +205,9 @@ def test_gradients_through_a_recovery():
     h = 1e-7
     fd = (log_volumes(MEASUREMENT + h, True) - log_volumes(MEASUREMENT - h, True)) / (2 * h)
     np.testing.assert_allclose(grad(MEASUREMENT, True), fd, rtol=1e-7)
-    assert grad(MEASUREMENT, True)[0] == grad(MEASUREMENT, False)[0]
+    # Before the outage the two programs differ only in code whose branch is not taken, so what
+    # may differ is XLA's rounding (2 ulps measured, under the suite's compile flags); a
+    # gradient leaking from the recovery branch would differ by far more, or be NaN.
+    np.testing.assert_allclose(
+        grad(MEASUREMENT, True)[0], grad(MEASUREMENT, False)[0], rtol=8 * np.finfo(float).eps
+    )
