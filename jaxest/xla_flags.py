@@ -1,22 +1,17 @@
 """XLA:CPU compiler flags that shorten compilation where compiling, not running, takes the time.
 
-Most of the time in jaxest's test suite and studies on a CPU is XLA compiling, not running:
-estimators on small matrices are written as unrolled element-wise code (``jaxest.linalg``), so
-one filter step is hundreds of small fusions, and a gradient doubles them. Two flags of the
-jaxlib this package pins (0.10) cut that time:
+On a CPU most of the time of jaxest's test suite and of a notebook is XLA compiling: estimators on
+small matrices are unrolled element-wise code (``jaxest.linalg``), so a filter step is hundreds of
+small fusions and its gradient twice as many. Two flags of the pinned jaxlib (0.10) cut that:
 
-- :data:`FASTER_COMPILATION`, ``--xla_cpu_use_fusion_emitters=false``: XLA:CPU emits each
-  element-wise fusion directly to LLVM IR instead of through its MLIR fusion pipeline. Measured
-  on a 2-core CPU: ``jit(value_and_grad)`` of the 4-state EKF log-likelihood compiles in 2.5 s
-  instead of 4.1 s (its forward pass 0.54 s instead of 1.11 s); across
-  ``benchmarks/speed.py`` compile times fall by 10-55 %. The code it generates is not always
-  as fast: 6 of those 16 rows ran slower per step (the set-membership filter on one sequence by
-  40 %), and the full ``filters`` and ``adaptive`` studies, which run more than they compile,
-  took 359-368 s against 319-347 s. So it pays where compiling dominates (the test suite,
-  notebooks, small problems), and ``python -m jaxest reproduce`` does not use it.
-- :data:`UNOPTIMISED_MACHINE_CODE`, ``--xla_backend_optimization_level=0``: LLVM generates code
-  without optimising it. It compiles faster again (the EKF gradient above in 1.5 s) but the
-  code runs slower, so only the test suite, which compiles far more than it runs, uses it.
+- :data:`FASTER_COMPILATION`, ``--xla_cpu_use_fusion_emitters=false``: each element-wise fusion
+  goes straight to LLVM IR instead of through XLA's MLIR fusion pipeline. Compiling is 10-55 %
+  faster, but some programs run slower, and the full studies, which run more than they compile,
+  took longer; so ``python -m jaxest reproduce`` does not use it.
+- :data:`UNOPTIMISED_MACHINE_CODE`, ``--xla_backend_optimization_level=0``: LLVM does not
+  optimise, compiling faster again and running slower; for the test suite.
+
+docs/performance.md ("XLA flags that compile faster") has the measurements.
 
 XLA reads ``XLA_FLAGS`` once, when JAX starts its CPU backend (the first computation), and an
 XLA that does not know a flag aborts the process. So :func:`add` changes nothing on a jaxlib
