@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import os
 
+import jaxlib
+
 #: the jaxlib release series whose XLA knows these flags and on which they were measured
 MEASURED_JAXLIB = "0.10."
 FASTER_COMPILATION = ("--xla_cpu_use_fusion_emitters=false",)
@@ -34,16 +36,19 @@ def add(flags: tuple[str, ...]) -> tuple[str, ...]:
     """Append ``flags`` (``--name=value`` each) to ``XLA_FLAGS`` in this process's environment,
     except those whose name ``XLA_FLAGS`` already sets; returns the flags added. Adds nothing
     on a jaxlib outside :data:`MEASURED_JAXLIB`."""
-    import jaxlib
-
     for flag in flags:
         if not (flag.startswith("--") and "=" in flag):
             raise ValueError(f"flags: {flag!r} is not of the form --name=value")
     if not jaxlib.__version__.startswith(MEASURED_JAXLIB):
         return ()
     present = os.environ.get("XLA_FLAGS", "").split()
-    names_present = {item.split("=", 1)[0] for item in present}
-    added = tuple(flag for flag in flags if flag.split("=", 1)[0] not in names_present)
+    names_present = {_name(item) for item in present}
+    added = tuple(flag for flag in flags if _name(flag) not in names_present)
     if added:
         os.environ["XLA_FLAGS"] = " ".join([*present, *added])
     return added
+
+
+def _name(flag: str) -> str:
+    """``--name`` of ``--name=value``."""
+    return flag.split("=", 1)[0]
