@@ -38,13 +38,20 @@ def test_cholesky_and_solves_match_lapack(n, dtype):
     L = jax.jit(jax.vmap(cholesky))(A)
     assert L.dtype == dtype
     np.testing.assert_allclose(L, np.linalg.cholesky(np.asarray(A, np.float64)), rtol=tol, atol=tol)
-    X = jax.vmap(lambda L, B: solve_triangular(L, B, lower=True))(L, B)
+
+    @jax.jit
+    def solves(L, B):
+        X = jax.vmap(lambda L, B: solve_triangular(L, B, lower=True))(L, B)
+        Y = jax.vmap(lambda L, B: solve_triangular(jnp.swapaxes(L, -1, -2), B, lower=False))(L, B)
+        v = solve_triangular(L[0], B[0, :, 0], lower=True)  # a vector right-hand side
+        return X, Y, v, cho_solve_lower(L, B)
+
+    X, Y, v, Z = (np.asarray(a, np.float64) for a in solves(L, B))
+    A, L, B = (np.asarray(a, np.float64) for a in (A, L, B))
     np.testing.assert_allclose(L @ X, B, rtol=tol, atol=tol)
-    Y = jax.vmap(lambda L, B: solve_triangular(jnp.swapaxes(L, -1, -2), B, lower=False))(L, B)
-    np.testing.assert_allclose(jnp.swapaxes(L, -1, -2) @ Y, B, rtol=tol, atol=tol)
-    v = solve_triangular(L[0], B[0, :, 0], lower=True)
+    np.testing.assert_allclose(np.swapaxes(L, -1, -2) @ Y, B, rtol=tol, atol=tol)
     np.testing.assert_allclose(L[0] @ v, B[0, :, 0], rtol=tol, atol=tol)
-    np.testing.assert_allclose(A @ cho_solve_lower(L, B), B, rtol=100 * tol, atol=100 * tol)
+    np.testing.assert_allclose(A @ Z, B, rtol=100 * tol, atol=100 * tol)
 
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (4, 4, 4), (2, 6, 3), (8, 8, 8), (9, 8, 8)])
@@ -59,19 +66,22 @@ def test_mm_matches_matmul_with_its_derivatives(shape, dtype):
     out = jax.jit(jax.vmap(mm))(a, b)
     assert out.dtype == dtype
     np.testing.assert_allclose(out, ref, rtol=tol, atol=tol)
-    _, tangent = jax.jvp(mm, (a, b), (da, db))
-    np.testing.assert_allclose(tangent, da @ b + a @ db, rtol=tol, atol=tol)
-    _, tangent = jax.jvp(lambda a: mm(a, b), (a,), (da,))  # a constant operand
-    np.testing.assert_allclose(tangent, da @ b, rtol=tol, atol=tol)
+    tangent = jax.jit(lambda *a: jax.jvp(mm, a[:2], a[2:])[1])(a, b, da, db)
+    const_b = jax.jit(lambda a, b, da: jax.jvp(lambda a: mm(a, b), (a,), (da,))[1])(a, b, da)
     loss = lambda a, b: jnp.sum(jnp.sin(mm(a, b)))
     g_a, g_b = jax.jit(jax.grad(loss, argnums=(0, 1)))(a, b)
-    g = jnp.cos(a @ b)
-    np.testing.assert_allclose(g_a, g @ jnp.swapaxes(b, -1, -2), rtol=tol, atol=tol)
-    np.testing.assert_allclose(g_b, jnp.swapaxes(a, -1, -2) @ g, rtol=tol, atol=tol)
-    if dtype == jnp.float64:  # and against finite differences
-        step = 1e-6
-        fd = (loss(a + step * da, b) - loss(a - step * da, b)) / (2 * step)
-        np.testing.assert_allclose(jnp.sum(g_a * da), fd, rtol=1e-7)
+    step = 1e-6
+    if dtype == jnp.float64:  # the gradient against central differences
+        fd = jax.jit(
+            lambda a, b, da: (loss(a + step * da, b) - loss(a - step * da, b)) / (2 * step)
+        )
+        np.testing.assert_allclose(jnp.sum(g_a * da), fd(a, b, da), rtol=1e-7)
+    a, b, da, db = (np.asarray(x, np.float64) for x in (a, b, da, db))
+    np.testing.assert_allclose(tangent, da @ b + a @ db, rtol=tol, atol=tol)
+    np.testing.assert_allclose(const_b, da @ b, rtol=tol, atol=tol)  # a constant operand
+    g = np.cos(a @ b)
+    np.testing.assert_allclose(g_a, g @ np.swapaxes(b, -1, -2), rtol=tol, atol=tol)
+    np.testing.assert_allclose(g_b, np.swapaxes(a, -1, -2) @ g, rtol=tol, atol=tol)
 
 
 def test_mv_is_mm_of_a_column():
@@ -101,6 +111,10 @@ def tall_matrices(rng, kind, p, n, count=40):
     return X
 
 
+#: one program per shape and dtype, shared by the four kinds of matrix
+batched_right_svd = jax.jit(jax.vmap(right_svd))
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 4, 6, 8, 9])
 @pytest.mark.parametrize("kind", ["gaussian", "graded", "ill", "repeated"])
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
@@ -111,7 +125,7 @@ def test_right_svd_matches_numpy(n, kind, dtype):
     rng = np.random.default_rng(n)
     A64 = tall_matrices(rng, kind, 2 * n, n)
     A = jnp.asarray(A64, dtype)
-    s, V = jax.jit(jax.vmap(right_svd))(A)
+    s, V = batched_right_svd(A)
     assert s.dtype == V.dtype == dtype
     eps = float(jnp.finfo(dtype).eps)
     s_ref = np.linalg.svd(np.asarray(A, np.float64), compute_uv=False)
@@ -183,21 +197,28 @@ def test_cholesky_and_solve_derivatives_equal_lapacks(n, dtype):
     dA = dA + jnp.asarray(rng.normal(size=dA.shape), dtype) * 0.1
     B, dB = (jnp.asarray(rng.normal(size=(3, n, 2)), dtype) for _ in "12")
     tol = 1e-4 if dtype == jnp.float32 else 1e-11
-    ours = jax.vmap(lambda A, dA: jax.jvp(cholesky, (A,), (dA,)))(A, dA)
-    ref = jax.vmap(lambda A, dA: jax.jvp(jnp.linalg.cholesky, (A,), (dA,)))(A, dA)
-    np.testing.assert_allclose(ours[1], ref[1], rtol=tol, atol=tol)
+    # each side is one compiled program (here and below): these are checks of derivative
+    # rules, and op-by-op dispatch would compile every primitive of the unrolled kernels alone
+    tangent_of = lambda chol: jax.jit(jax.vmap(lambda A, dA: jax.jvp(chol, (A,), (dA,))[1]))
+    np.testing.assert_allclose(
+        tangent_of(cholesky)(A, dA), tangent_of(jnp.linalg.cholesky)(A, dA), rtol=tol, atol=tol
+    )
     for lower in (True, False):
         L = jnp.linalg.cholesky(A)
         L = L if lower else jnp.swapaxes(L, -1, -2)
         dL = jnp.asarray(rng.normal(size=L.shape), dtype)  # full: the other triangle is unread
         solve_ours = lambda L, B: solve_triangular(L, B, lower=lower)
         solve_ref = lambda L, B: jax.scipy.linalg.solve_triangular(L, B, lower=lower)
-        tangent = jax.vmap(lambda *a: jax.jvp(solve_ours, a[:2], a[2:])[1])(L, B, dL, dB)
-        tangent_ref = jax.vmap(lambda *a: jax.jvp(solve_ref, a[:2], a[2:])[1])(L, B, dL, dB)
-        np.testing.assert_allclose(tangent, tangent_ref, rtol=tol, atol=tol)
+        tangent_of = lambda solve: jax.jit(jax.vmap(lambda *a: jax.jvp(solve, a[:2], a[2:])[1]))
+        np.testing.assert_allclose(
+            tangent_of(solve_ours)(L, B, dL, dB), tangent_of(solve_ref)(L, B, dL, dB),
+            rtol=tol, atol=tol,
+        )  # fmt: skip
         loss = lambda solve, chol: lambda L, B, A: jnp.sum(jnp.sin(solve(L, B)) * chol(A)[..., :1])
         grads = jax.jit(jax.grad(loss(solve_ours, cholesky), argnums=(0, 1, 2)))(L, B, A)
-        grads_ref = jax.grad(loss(solve_ref, jnp.linalg.cholesky), argnums=(0, 1, 2))(L, B, A)
+        grads_ref = jax.jit(jax.grad(loss(solve_ref, jnp.linalg.cholesky), argnums=(0, 1, 2)))(
+            L, B, A
+        )
         for g, g_ref in zip(grads, grads_ref, strict=True):
             np.testing.assert_allclose(g, g_ref, rtol=tol, atol=tol)
     if dtype == jnp.float64:
@@ -206,8 +227,9 @@ def test_cholesky_and_solve_derivatives_equal_lapacks(n, dtype):
             lambda t: jnp.sum(jnp.log(jnp.diagonal(cholesky(A[0] + t * direction))))
         )
         step = 1e-5
-        fd = (logdet_grad(step) - logdet_grad(-step)) / (2 * step)
-        np.testing.assert_allclose(jax.grad(logdet_grad)(0.0), fd, rtol=1e-6)
+        first = jax.jit(jax.vmap(logdet_grad))(jnp.asarray([step, -step]))
+        fd = (first[0] - first[1]) / (2 * step)
+        np.testing.assert_allclose(jax.jit(jax.grad(logdet_grad))(0.0), fd, rtol=1e-6)
 
 
 @pytest.mark.parametrize("p", [2, 4, 7])

@@ -40,22 +40,29 @@ def affine_maps(T, seed=1):
 
 def assert_same(actual, desired):
     for a, d in zip(jax.tree.leaves(actual), jax.tree.leaves(desired), strict=True):
-        np.testing.assert_allclose(a, d, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(d))))
+        d = np.asarray(d)
+        np.testing.assert_allclose(a, d, rtol=1e-12, atol=1e-12 * np.max(np.abs(d)))
 
 
 @pytest.mark.parametrize("reverse", [False, True], ids=["forward", "reverse"])
 @pytest.mark.parametrize("T", LENGTHS)
 def test_equals_lax_associative_scan(T, reverse):
+    ours = {}
     for fn, elems in ((matmul, matrices(T)), (affine, affine_maps(T))):
-        ours = jax.jit(lambda e: scan.associative_scan(jax.vmap(fn), e, reverse=reverse))(elems)
-        assert_same(ours, jax.lax.associative_scan(jax.vmap(fn), elems, reverse=reverse))
+        ours[fn], theirs = jax.jit(
+            lambda e: tuple(
+                assoc(jax.vmap(fn), e, reverse=reverse)
+                for assoc in (scan.associative_scan, jax.lax.associative_scan)
+            )
+        )(elems)
+        assert_same(ours[fn], theirs)
     # and the sequential products themselves (the operation is not commutative)
     m = np.asarray(matrices(T))
     prefix = np.eye(2)
     for k in range(T) if not reverse else range(T - 1, -1, -1):
         prefix = m[k] @ prefix
-    ours = scan.associative_scan(jax.vmap(matmul), matrices(T), reverse=reverse)
-    np.testing.assert_allclose(ours[-1 if not reverse else 0], prefix, rtol=1e-12, atol=1e-14)
+    last = ours[matmul][-1 if not reverse else 0]
+    np.testing.assert_allclose(last, prefix, rtol=1e-12, atol=1e-14)
 
 
 @pytest.mark.parametrize("chunks", [2, 16, 1000])
@@ -64,9 +71,13 @@ def test_step_width_does_not_change_the_result(monkeypatch, chunks):
     monkeypatch.setattr(scan, "CHUNKS", chunks)
     for T in (5, 100, 1000):
         for reverse in (False, True):
-            elems = affine_maps(T)
-            ours = scan.associative_scan(jax.vmap(affine), elems, reverse=reverse)
-            assert_same(ours, jax.lax.associative_scan(jax.vmap(affine), elems, reverse=reverse))
+            ours, theirs = jax.jit(
+                lambda e: tuple(
+                    assoc(jax.vmap(affine), e, reverse=reverse)
+                    for assoc in (scan.associative_scan, jax.lax.associative_scan)
+                )
+            )(affine_maps(T))
+            assert_same(ours, theirs)
 
 
 @pytest.mark.parametrize("T", [2, 3, 100, 1000, 100_000])
@@ -94,16 +105,16 @@ def test_schedule_is_the_brent_kung_tree_in_few_steps(T):
 def test_vmap_and_grad_equal_lax():
     elems = affine_maps(37)
     batch = jax.tree.map(lambda a: jnp.stack([a, 2 * a]), elems)
-    ours = jax.vmap(lambda e: scan.associative_scan(jax.vmap(affine), e))(batch)
-    theirs = jax.vmap(lambda e: jax.lax.associative_scan(jax.vmap(affine), e))(batch)
+    ours = jax.jit(jax.vmap(lambda e: scan.associative_scan(jax.vmap(affine), e)))(batch)
+    theirs = jax.jit(jax.vmap(lambda e: jax.lax.associative_scan(jax.vmap(affine), e)))(batch)
     assert_same(ours, theirs)
 
     def loss(scan_fn, e):
         out = scan_fn(jax.vmap(affine), e, reverse=True)
         return jnp.sum(out["c"] ** 2) + jnp.sum(jnp.sin(out["A"]))
 
-    assert_same(jax.grad(lambda e: loss(scan.associative_scan, e))(elems),
-                jax.grad(lambda e: loss(jax.lax.associative_scan, e))(elems))  # fmt: skip
+    assert_same(jax.jit(jax.grad(lambda e: loss(scan.associative_scan, e)))(elems),
+                jax.jit(jax.grad(lambda e: loss(jax.lax.associative_scan, e)))(elems))  # fmt: skip
 
 
 def test_lane_sweep_picks_the_width_fastest_relative_to_the_best():
