@@ -6,7 +6,18 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest.setmembership.ellipsoid import add_box, add_segment, contains, intersect_strip
+from jaxest.setmembership import ellipsoid
+
+# Compiled once per shape: op by op, every primitive of a kernel would compile on its own.
+add_box, add_segment, contains, intersect_strip = (
+    jax.jit(f)
+    for f in (
+        ellipsoid.add_box,
+        ellipsoid.add_segment,
+        ellipsoid.contains,
+        ellipsoid.intersect_strip,
+    )
+)
 
 
 def _random_ellipsoid(rng, n):
@@ -124,13 +135,13 @@ def test_operations_under_jit_vmap_grad(dtype):
     assert out.dtype == dtype and out.shape == (4,) and not np.any(empty)
     grad = jax.jit(jax.grad(lambda z: step(cs[0], z)[0]))(jnp.asarray(0.4, dtype))
     eps = 1e-2 if dtype == jnp.float32 else 1e-6
-    fd = (step(cs[0], 0.4 + eps)[0] - step(cs[0], 0.4 - eps)[0]) / (2 * eps)
+    fd = jax.jit(lambda z: (step(cs[0], z + eps)[0] - step(cs[0], z - eps)[0]) / (2 * eps))(0.4)
     np.testing.assert_allclose(grad, fd, rtol=2e-2 if dtype == jnp.float32 else 1e-6)
     assert np.isfinite(grad)
     # a branch not taken (no update: a strip wider than the ellipsoid) still has finite gradients
-    g2 = jax.grad(lambda v: jnp.sum(intersect_strip(cs[0], P, h, jnp.asarray(0.0, dtype), v)[1]))(
-        jnp.asarray(5.0, dtype)
-    )
+    g2 = jax.jit(
+        jax.grad(lambda v: jnp.sum(intersect_strip(cs[0], P, h, jnp.asarray(0.0, dtype), v)[1]))
+    )(jnp.asarray(5.0, dtype))
     assert np.isfinite(g2) and g2 == 0
     assert bool(contains(cs[0], P, cs[0])) and not bool(contains(cs[0], P, cs[0] + 10))
 
