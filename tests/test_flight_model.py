@@ -127,8 +127,9 @@ def _central_difference(fun, x, eps):
 def test_jacobians_match_finite_differences():
     rng = np.random.default_rng(2)
     model, x, u = _model_and_point(rng)
-    mean, F, G, Q = model.transition(x, u, 0)
-    y, H, R = model.observation(x, u, 0)
+    # compiled, as the filters run them (op by op, each primitive of RK4 would compile alone)
+    mean, F, G, Q = eqx.filter_jit(model.transition)(x, u, 0)
+    y, H, R = eqx.filter_jit(model.observation)(x, u, 0)
     scale = np.concatenate([[1.0] * 3, [1e-3] * 3, [1.0], [1e-3] * 16])
     f_jit, h_jit = eqx.filter_jit(model.f), eqx.filter_jit(model.h)
     f = lambda z: np.asarray(f_jit(jnp.asarray(z), u))
@@ -142,7 +143,8 @@ def test_jacobians_match_finite_differences():
     G_fd = _central_difference(both_ends, np.zeros(6), 1e-4)
     np.testing.assert_allclose(G, G_fd, rtol=1e-6, atol=1e-8)
     # the time update reads G off F; the simulator's noise gain differentiates f in the inputs
-    np.testing.assert_allclose(G, model.process_noise(x, u, 0)[0], rtol=1e-13, atol=1e-15)
+    G_sim = eqx.filter_jit(model.process_noise)(x, u, 0)[0]
+    np.testing.assert_allclose(G, G_sim, rtol=1e-13, atol=1e-15)
     h = lambda z: np.asarray(h_jit(jnp.asarray(z), u))
     H_fd = (
         _central_difference(lambda d: h(np.asarray(x) + scale * d), np.zeros(N_STATE), 1e-3) / scale
