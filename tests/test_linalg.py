@@ -70,8 +70,8 @@ def test_mm_matches_matmul_with_its_derivatives(shape, dtype):
     const_b = jax.jit(lambda a, b, da: jax.jvp(lambda a: mm(a, b), (a,), (da,))[1])(a, b, da)
     loss = lambda a, b: jnp.sum(jnp.sin(mm(a, b)))
     g_a, g_b = jax.jit(jax.grad(loss, argnums=(0, 1)))(a, b)
-    step = 1e-6
     if dtype == jnp.float64:  # the gradient against central differences
+        step = 1e-6
         fd = jax.jit(
             lambda a, b, da: (loss(a + step * da, b) - loss(a - step * da, b)) / (2 * step)
         )
@@ -199,9 +199,9 @@ def test_cholesky_and_solve_derivatives_equal_lapacks(n, dtype):
     tol = 1e-4 if dtype == jnp.float32 else 1e-11
     # each side is one compiled program (here and below): these are checks of derivative
     # rules, and op-by-op dispatch would compile every primitive of the unrolled kernels alone
-    tangent_of = lambda chol: jax.jit(jax.vmap(lambda A, dA: jax.jvp(chol, (A,), (dA,))[1]))
+    chol_tangent = lambda chol: jax.jit(jax.vmap(lambda A, dA: jax.jvp(chol, (A,), (dA,))[1]))
     np.testing.assert_allclose(
-        tangent_of(cholesky)(A, dA), tangent_of(jnp.linalg.cholesky)(A, dA), rtol=tol, atol=tol
+        chol_tangent(cholesky)(A, dA), chol_tangent(jnp.linalg.cholesky)(A, dA), rtol=tol, atol=tol
     )
     for lower in (True, False):
         L = jnp.linalg.cholesky(A)
@@ -209,9 +209,9 @@ def test_cholesky_and_solve_derivatives_equal_lapacks(n, dtype):
         dL = jnp.asarray(rng.normal(size=L.shape), dtype)  # full: the other triangle is unread
         solve_ours = lambda L, B: solve_triangular(L, B, lower=lower)
         solve_ref = lambda L, B: jax.scipy.linalg.solve_triangular(L, B, lower=lower)
-        tangent_of = lambda solve: jax.jit(jax.vmap(lambda *a: jax.jvp(solve, a[:2], a[2:])[1]))
+        solve_tangent = lambda solve: jax.jit(jax.vmap(lambda *a: jax.jvp(solve, a[:2], a[2:])[1]))
         np.testing.assert_allclose(
-            tangent_of(solve_ours)(L, B, dL, dB), tangent_of(solve_ref)(L, B, dL, dB),
+            solve_tangent(solve_ours)(L, B, dL, dB), solve_tangent(solve_ref)(L, B, dL, dB),
             rtol=tol, atol=tol,
         )  # fmt: skip
         loss = lambda solve, chol: lambda L, B, A: jnp.sum(jnp.sin(solve(L, B)) * chol(A)[..., :1])

@@ -38,6 +38,12 @@ def affine_maps(T, seed=1):
     }
 
 
+def both_scans(fn, elems, reverse=False):
+    """jaxest's and lax's associative scans of ``elems`` under ``fn``, in one compiled program."""
+    scans = (scan.associative_scan, jax.lax.associative_scan)
+    return jax.jit(lambda e: tuple(s(jax.vmap(fn), e, reverse=reverse) for s in scans))(elems)
+
+
 def assert_same(actual, desired):
     for a, d in zip(jax.tree.leaves(actual), jax.tree.leaves(desired), strict=True):
         d = np.asarray(d)
@@ -49,12 +55,7 @@ def assert_same(actual, desired):
 def test_equals_lax_associative_scan(T, reverse):
     ours = {}
     for fn, elems in ((matmul, matrices(T)), (affine, affine_maps(T))):
-        ours[fn], theirs = jax.jit(
-            lambda e: tuple(
-                assoc(jax.vmap(fn), e, reverse=reverse)
-                for assoc in (scan.associative_scan, jax.lax.associative_scan)
-            )
-        )(elems)
+        ours[fn], theirs = both_scans(fn, elems, reverse)
         assert_same(ours[fn], theirs)
     # and the sequential products themselves (the operation is not commutative)
     m = np.asarray(matrices(T))
@@ -71,13 +72,7 @@ def test_step_width_does_not_change_the_result(monkeypatch, chunks):
     monkeypatch.setattr(scan, "CHUNKS", chunks)
     for T in (5, 100, 1000):
         for reverse in (False, True):
-            ours, theirs = jax.jit(
-                lambda e: tuple(
-                    assoc(jax.vmap(affine), e, reverse=reverse)
-                    for assoc in (scan.associative_scan, jax.lax.associative_scan)
-                )
-            )(affine_maps(T))
-            assert_same(ours, theirs)
+            assert_same(*both_scans(affine, affine_maps(T), reverse))
 
 
 @pytest.mark.parametrize("T", [2, 3, 100, 1000, 100_000])
