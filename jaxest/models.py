@@ -240,6 +240,7 @@ def gaussian_noise(key, cov):
 
 
 @working_precision_by_default
+@eqx.filter_jit
 def simulate(
     model: AbstractGaussianModel,
     x0,
@@ -255,6 +256,9 @@ def simulate(
     ``x0`` is the initial state, or a :class:`~jaxest.Gaussian` to draw it from. The noise
     samplers take ``(key, cov)`` and return one draw (default: Gaussian); pass, e.g., a uniform
     sampler for bounded noise. ``inputs`` has a leading time axis of length ``num_steps``.
+
+    Compiled as one program (``equinox.filter_jit``; ``num_steps``, the samplers and the model's
+    functions are static), so a second call with arrays of the same shapes does not compile.
     """
     key0, key = jax.random.split(key)
     if isinstance(x0, Gaussian):

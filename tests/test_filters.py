@@ -1,6 +1,8 @@
 """Every Gaussian filter against a NumPy Kalman filter, against each other, and under jit, vmap
 and grad in float32 and float64."""
 
+import logging
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -238,3 +240,14 @@ def test_status_flags_nonfinite_inside_jit():
     res = jax.jit(lambda m: je.run(KalmanFilter(), m, sim.y, prior=prior))(bad)
     assert np.all(np.asarray(res.status) != je.Status.OK)
     assert "NONFINITE" in je.Status.describe(int(res.status[0]))
+
+
+def test_simulate_compiles_once_per_shape(caplog):
+    """``je.simulate`` is one compiled program: a second draw with another key compiles
+    nothing (it compiled its scan anew on every call before)."""
+    model, prior, first = linear_problem(seed=2, T=50)
+    key = jax.random.PRNGKey(7)
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        second = jax.block_until_ready(je.simulate(model, prior, 50, key))
+    assert [r.getMessage() for r in caplog.records if "Compiling" in r.getMessage()] == []
+    assert second.y.shape == first.y.shape and not np.allclose(second.y, first.y)
