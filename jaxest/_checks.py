@@ -175,8 +175,49 @@ def linear_state_dim(model: LinearGaussian, prior) -> int:
     return n_F
 
 
+#: :func:`model_shapes` by :func:`_abstract_signature` of its arguments, newest last
+_SHAPES_SEEN: dict = {}
+#: how many signatures :data:`_SHAPES_SEEN` keeps
+_SHAPES_KEPT = 64
+
+
+def _abstract_signature(tree):
+    """What the model's output shapes can depend on: the tree's structure (static fields
+    included), each array leaf's shape and dtype and every other leaf itself (Python numbers,
+    functions). ``None`` where a leaf is neither an array nor hashable."""
+    leaves, treedef = jax.tree.flatten(tree)
+    signature = [treedef]
+    for leaf in leaves:
+        if hasattr(leaf, "shape") and hasattr(leaf, "dtype"):
+            signature.append((tuple(leaf.shape), leaf.dtype))
+        else:
+            signature.append((type(leaf), leaf))
+    signature = tuple(signature)
+    try:
+        hash(signature)  # static fields are part of the structure, and may not hash
+    except TypeError:
+        return None
+    return signature
+
+
 def model_shapes(model, x, u) -> dict[str, tuple]:
-    """Shapes of what the model's methods return at ``x`` (abstractly: nothing is computed)."""
+    """Shapes of what the model's methods return at ``x`` (abstractly: nothing is computed).
+
+    Remembered for the last :data:`_SHAPES_KEPT` signatures: tracing a model's transition and
+    its Jacobian (an RK4 flight model: 0.2 s) is otherwise repeated by every :func:`jaxest.run`
+    on it, and again inside each trace of a function that calls it."""
+    signature = _abstract_signature((model, x, u))
+    if signature is not None and signature in _SHAPES_SEEN:
+        return _SHAPES_SEEN[signature]
+    shapes = _evaluate_shapes(model, x, u)
+    if signature is not None:
+        _SHAPES_SEEN[signature] = shapes
+        if len(_SHAPES_SEEN) > _SHAPES_KEPT:
+            del _SHAPES_SEEN[next(iter(_SHAPES_SEEN))]
+    return shapes
+
+
+def _evaluate_shapes(model, x, u) -> dict[str, tuple]:
     try:
         f, F, G, Q = jax.eval_shape(model.transition, x, u, 0)
         h, H, R = jax.eval_shape(model.observation, x, u, 0)

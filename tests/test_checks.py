@@ -98,6 +98,25 @@ def test_nonlinear_model_shapes_checked():
         )
 
 
+def test_model_shapes_are_traced_once_per_signature():
+    """The shape check traces the model once per structure and shapes: a second run on new
+    data neither traces ``f`` again nor compiles; a state of another size is checked anew."""
+    traces = []
+
+    def f(x, u):
+        traces.append(x.shape)
+        return 0.9 * x
+
+    model = je.NonlinearGaussian(f, lambda x, u: x[:1], 0.1 * jnp.eye(2), jnp.eye(1))
+    ys, prior = jnp.zeros((10, 1)), je.Gaussian(jnp.zeros(2), jnp.eye(2))
+    je.run(KalmanFilter(), model, ys, prior=prior)
+    traced = len(traces)
+    je.run(KalmanFilter(), model, ys + 1.0, prior=prior)
+    assert len(traces) == traced
+    with pytest.raises(ValueError, match=r"model.Q: has shape \(2, 2\), expected \(3, 3\)"):
+        je.run(KalmanFilter(), model, ys, prior=je.Gaussian(jnp.zeros(3), jnp.eye(3)))
+
+
 def test_missing_rows_are_skipped_exactly():
     """A NaN entry gives the same result as a model without that measurement row."""
     model, _, prior = good()
