@@ -219,30 +219,30 @@ def tune(plant: Plant, name: str, key, *, batch: int, steps: int):
     return tuned, np.asarray(fitted.losses)
 
 
-def stack_scenarios(*scenarios: Scenario) -> Scenario:
-    return jax.tree_util.tree_map(lambda *leaves: jnp.stack(leaves), *scenarios)
-
-
-def _take(batch: Scenario, idx) -> Scenario:
-    return jax.tree_util.tree_map(lambda leaf: leaf[idx], batch)
+def concatenate_scenarios(*scenarios: Scenario) -> Scenario:
+    """One batch of the given scenarios, single ones (:func:`nominal_scenario`) and batches
+    (:func:`random_scenarios`) alike, in order."""
+    as_batch = lambda s: s if s.x0.ndim == 2 else jax.tree_util.tree_map(lambda a: a[None], s)
+    return jax.tree_util.tree_map(
+        lambda *leaves: jnp.concatenate(leaves), *map(as_batch, scenarios)
+    )
 
 
 @eqx.filter_jit
-def _fly_pair(observer, plant, name, scenarios, T):
+def _fly_batch(observer, plant, name, scenarios, T):
     return jax.vmap(lambda s: fly(observer, plant, name, s, T))(scenarios)
 
 
 def fly_all(observer, plant, name, scenarios: Scenario, T: float):
-    """Run a batch of scenarios two at a time (one compiled function per aircraft and horizon);
-    returns the list of closed-loop runs (as NumPy-backed pytrees)."""
+    """Run a batch of scenarios under one ``vmap`` (one compiled function per aircraft, horizon
+    and batch size); returns the list of closed-loop runs (as NumPy-backed pytrees).
+
+    One batch, not a loop over small ones: a closed-loop step is a few small matrices, so a run
+    of 32,000 steps costs the scan's per-step overhead, which a batch shares. On the Charlie
+    horizon, 10 runs at once took 4.6 s against 3.5 s for 2 (2-core CPU, after compiling)."""
+    batch = jax.tree_util.tree_map(np.asarray, _fly_batch(observer, plant, name, scenarios, T))
     count = scenarios.x0.shape[0]
-    runs = []
-    for start in range(0, count, 2):
-        idx = np.minimum(np.arange(start, start + 2), count - 1)
-        pair = _fly_pair(observer, plant, name, _take(scenarios, idx), T)
-        for j in range(min(2, count - start)):
-            runs.append(jax.tree_util.tree_map(lambda leaf, j=j: np.asarray(leaf[j]), pair))
-    return runs
+    return [jax.tree_util.tree_map(lambda leaf, j=j: leaf[j], batch) for j in range(count)]
 
 
 def _plot_errors(path: Path, name: str, runs: dict, plant: Plant, state_names) -> None:
@@ -326,26 +326,25 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             tuned, history = tune(plant, name, train_key, batch=tune_batch, steps=tune_steps)
             progress.advance(f"{name} tuned, loss {history[0]:.3g} -> {history[-1]:.3g}")
             observers = {"hand": hand_observer(plant), "tuned": tuned}
-            nominal = stack_scenarios(
-                nominal_scenario(name, plant, False), nominal_scenario(name, plant, True)
+            # the nominal scenario noise-free and noisy, then the held-out ones: one batch
+            scenarios = concatenate_scenarios(
+                nominal_scenario(name, plant, False),
+                nominal_scenario(name, plant, True),
+                random_scenarios(name, plant, test_key, runs),
             )
             window_full = observers["hand"].excitation_window
             result: dict = {"noisy": {}}
-            flown = {}
+            flown, held_out = {}, {}
             for label, obs in observers.items():
-                clean, noisy = fly_all(obs, plant, name, nominal, T)
+                clean, noisy, *held_out[label] = fly_all(obs, plant, name, scenarios, T)
                 flown[label] = clean
                 result[label] = record(clean, plant, window_full)
                 result["noisy"][label] = record(noisy, plant, window_full)
-            progress.advance(f"{name} nominal runs")
-            held_out = random_scenarios(name, plant, test_key, runs)
+            progress.advance(f"{name} nominal and held-out runs")
             settle = {}
             mc = {}
-            for label, obs in observers.items():
-                recs = [
-                    record(sim, plant, window_full)
-                    for sim in fly_all(obs, plant, name, held_out, T)
-                ]
+            for label in observers:
+                recs = [record(sim, plant, window_full) for sim in held_out[label]]
                 settle[label] = [r["theta_settling_time"] for r in recs]
                 mc[label] = {
                     "theta_settling_time": settle[label],
@@ -362,7 +361,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             mc["speedup_median"] = float(np.median(speedup))
             mc["runs"] = runs
             mc["horizon"] = T
-            progress.advance(f"{name} Monte Carlo")
+            progress.advance(f"{name} Monte Carlo summarised")
             result["held_out_montecarlo"] = mc
             result["tuned_matrices"] = {
                 f: np.asarray(getattr(tuned, f)) for f in ("M", "Sigma", "Q", "R")
