@@ -57,12 +57,14 @@ def emit_json(data, path=None) -> str:
 def timed(fn, args, repeats: int = 5) -> tuple[float, float, object]:
     """(compile seconds, best run seconds, output) of ``jax.jit(fn)(*args)``: compiled ahead of
     time, run once to warm up (its output is returned), then the fastest of ``repeats`` runs (the
-    benchmarks' per-step times)."""
+    benchmarks' per-step times). ``repeats=0``: the warm-up run's time, for runs too long to
+    repeat."""
     start = time.perf_counter()
     compiled = jax.jit(fn).lower(*args).compile()
     compile_s = time.perf_counter() - start
+    start = time.perf_counter()
     output = jax.block_until_ready(compiled(*args))
-    best = math.inf
+    best = time.perf_counter() - start if repeats == 0 else math.inf
     for _ in range(repeats):
         start = time.perf_counter()
         jax.block_until_ready(compiled(*args))

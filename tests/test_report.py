@@ -1,0 +1,32 @@
+"""``jaxest.report.timed``: compile once, then time runs of the compiled program."""
+
+import time
+
+import jax
+import jax.numpy as jnp
+import pytest
+
+from jaxest.report import timed
+
+
+def counting_sleeper(calls: list):
+    """A program whose every run sleeps 20 ms and appends to ``calls`` (a host callback)."""
+
+    def sleep(x):
+        calls.append(1)
+        time.sleep(0.02)
+        return x
+
+    return lambda x: jax.pure_callback(sleep, jax.ShapeDtypeStruct(x.shape, x.dtype), x) + 1.0
+
+
+@pytest.mark.parametrize("repeats, runs", [(0, 1), (1, 2), (3, 4)])
+def test_runs_once_to_warm_up_then_repeats(repeats, runs):
+    """``repeats=0`` times the warm-up run itself: the program runs once; otherwise once more
+    per repeat. The time is one run's, and the output the warm-up run's."""
+    calls = []
+    compile_s, run_s, output = timed(counting_sleeper(calls), (jnp.zeros(3),), repeats)
+    assert len(calls) == runs
+    assert 0.02 <= run_s < 0.5
+    assert compile_s >= 0.0
+    assert jnp.array_equal(output, jnp.ones(3))
