@@ -239,7 +239,8 @@ def fly_all(observer, plant, name, scenarios: Scenario, T: float):
 
     One batch, not a loop over small ones: a closed-loop step is a few small matrices, so a run
     of 32,000 steps costs the scan's per-step overhead, which a batch shares. On the Charlie
-    horizon, 10 runs at once took 4.6 s against 3.5 s for 2 (2-core CPU, after compiling)."""
+    horizon, 10 runs at once took 4.4-5.0 s, five batches of 2 runs 11.5 s (2-core CPU, after
+    compiling)."""
     batch = jax.tree_util.tree_map(np.asarray, _fly_batch(observer, plant, name, scenarios, T))
     count = scenarios.x0.shape[0]
     return [jax.tree_util.tree_map(lambda leaf, j=j: leaf[j], batch) for j in range(count)]
