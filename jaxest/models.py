@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import abc
 import inspect
+import operator
 from collections.abc import Callable
 
 import equinox as eqx
@@ -240,7 +241,6 @@ def gaussian_noise(key, cov):
 
 
 @working_precision_by_default
-@eqx.filter_jit
 def simulate(
     model: AbstractGaussianModel,
     x0,
@@ -260,6 +260,20 @@ def simulate(
     Compiled as one program (``equinox.filter_jit``; ``num_steps``, the samplers and the model's
     functions are static), so a second call with arrays of the same shapes does not compile.
     """
+    try:
+        steps = operator.index(num_steps)  # a Python, NumPy or concrete JAX integer
+    except TypeError:
+        raise ValueError(
+            f"num_steps: expected an integer known before tracing (it sets the number of "
+            f"steps), got {num_steps!r}"
+        ) from None
+    if steps < 0:
+        raise ValueError(f"num_steps: must not be negative, got {steps}")
+    return _simulate(model, x0, steps, key, inputs, process_noise, measurement_noise)
+
+
+@eqx.filter_jit
+def _simulate(model, x0, num_steps: int, key, inputs, process_noise, measurement_noise):
     key0, key = jax.random.split(key)
     if isinstance(x0, Gaussian):
         x0 = x0.mean + gaussian_noise(key0, x0.cov)

@@ -1,5 +1,6 @@
 """Bad input raises ValueError naming the argument, before anything is traced."""
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -115,6 +116,19 @@ def test_model_shapes_are_traced_once_per_signature():
     assert len(traces) == traced
     with pytest.raises(ValueError, match=r"model.Q: has shape \(2, 2\), expected \(3, 3\)"):
         je.run(KalmanFilter(), model, ys, prior=je.Gaussian(jnp.zeros(3), jnp.eye(3)))
+
+
+def test_simulate_takes_any_integer_step_count_and_rejects_others():
+    """``num_steps`` may be a Python, NumPy or concrete JAX integer (the same draw); a float or
+    a negative count raises naming it."""
+    model, _, prior = good()
+    key = jax.random.PRNGKey(0)
+    draws = [je.simulate(model, prior, n, key).y for n in (6, np.int64(6), jnp.int32(6))]
+    assert draws[0].shape == (6, 1)
+    assert all(np.array_equal(draws[0], draw) for draw in draws)
+    for bad in (6.0, -1):
+        with pytest.raises(ValueError, match="num_steps"):
+            je.simulate(model, prior, bad, key)
 
 
 def test_missing_rows_are_skipped_exactly():
