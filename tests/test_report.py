@@ -1,5 +1,6 @@
 """``jaxest.report.timed``: compile once, then time runs of the compiled program."""
 
+import math
 import time
 
 import jax
@@ -23,10 +24,11 @@ def counting_sleeper(calls: list):
 @pytest.mark.parametrize("repeats, runs", [(0, 1), (1, 2), (3, 4)])
 def test_runs_once_to_warm_up_then_repeats(repeats, runs):
     """``repeats=0`` times the warm-up run itself: the program runs once; otherwise once more
-    per repeat. The time is one run's, and the output the warm-up run's."""
+    per repeat. The time is a run's (no upper bound: a loaded machine may be slow), and the
+    output the warm-up run's."""
     calls = []
     compile_s, run_s, output = timed(counting_sleeper(calls), (jnp.zeros(3),), repeats)
     assert len(calls) == runs
-    assert 0.02 <= run_s < 0.5
+    assert math.isfinite(run_s) and run_s >= 0.02  # one run's time: at least its sleep
     assert compile_s >= 0.0
     assert jnp.array_equal(output, jnp.ones(3))
