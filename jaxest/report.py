@@ -54,22 +54,22 @@ def emit_json(data, path=None) -> str:
     return text
 
 
+def timed_call(call) -> tuple[object, float]:
+    """``call()``'s result, waited for (JAX dispatches asynchronously), and the seconds it took."""
+    start = time.perf_counter()
+    result = jax.block_until_ready(call())
+    return result, time.perf_counter() - start
+
+
 def timed(fn, args, repeats: int = 5) -> tuple[float, float, object]:
     """(compile seconds, best run seconds, output) of ``jax.jit(fn)(*args)``: compiled ahead of
     time, run once to warm up (its output is returned), then the fastest of ``repeats`` runs (the
     benchmarks' per-step times). ``repeats=0``: the warm-up run's time, for runs too long to
     repeat."""
-    start = time.perf_counter()
-    compiled = jax.jit(fn).lower(*args).compile()
-    compile_s = time.perf_counter() - start
-    start = time.perf_counter()
-    output = jax.block_until_ready(compiled(*args))
-    best = time.perf_counter() - start if repeats == 0 else math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        best = min(best, time.perf_counter() - start)
-    return compile_s, best, output
+    compiled, compile_s = timed_call(lambda: jax.jit(fn).lower(*args).compile())
+    output, warm_up_s = timed_call(lambda: compiled(*args))
+    repeat_s = [timed_call(lambda: compiled(*args))[1] for _ in range(repeats)]
+    return compile_s, min(repeat_s, default=warm_up_s), output
 
 
 def device_name() -> str:

@@ -12,7 +12,6 @@
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import equinox as eqx
@@ -34,7 +33,7 @@ from jaxest.network.design import (
 )
 from jaxest.network.structure import block_diag, draw_initial_state, simulate_step
 from jaxest.progress import Progress
-from jaxest.report import markdown_table, write_json
+from jaxest.report import markdown_table, timed_call, write_json
 from jaxest.systems.chain import initial_prior, mass_chain
 
 DESCRIPTION = "network filter on a mass chain: J per structure, Monte Carlo, scaling in N"
@@ -132,28 +131,22 @@ def link_removals(system, cov0, base: CommunicationStructure, J_base: float):
     return lowered, int(hears.sum())
 
 
-def _timed(fn):
-    start = time.perf_counter()
-    out = jax.block_until_ready(fn())
-    return out, time.perf_counter() - start
-
-
 def scaling(sizes, steps, dt, progress):
     rows = []
     for N in sizes:
         system = mass_chain(N)
         mean0, cov0 = initial_prior(N)
         structure = CommunicationStructure.chain(N)
-        _, compile_design = _timed(lambda: steady_state(system, structure, cov0).J)
-        ss, design_seconds = _timed(lambda: steady_state(system, structure, cov0))
+        _, compile_design = timed_call(lambda: steady_state(system, structure, cov0).J)
+        ss, design_seconds = timed_call(lambda: steady_state(system, structure, cov0))
         key = jax.random.key(N)
         ys = jax.random.normal(key, (steps, N, system.obs_dim), mean0.dtype)
         filt = NetworkFilter(structure, ss.gains, dt)
         runner = jax.jit(
             lambda ys: run_estimator(filt, system, ys, prior=Gaussian(mean0, cov0)).mean
         )
-        _, compile_run = _timed(lambda: runner(ys))
-        _, run_seconds = _timed(lambda: runner(ys))
+        _, compile_run = timed_call(lambda: runner(ys))
+        _, run_seconds = timed_call(lambda: runner(ys))
         rows.append(
             {
                 "N": N,

@@ -37,7 +37,6 @@ only the filters of ``QUICK_FILTERS`` (compilation, not the runs, dominates the 
 
 from __future__ import annotations
 
-import time
 from pathlib import Path
 
 import equinox as eqx
@@ -60,7 +59,7 @@ from jaxest.filters import (
 from jaxest.linalg import cholesky, solve_triangular
 from jaxest.plot import save, subplots
 from jaxest.progress import Progress
-from jaxest.report import markdown_table, write_json
+from jaxest.report import markdown_table, timed_call, write_json
 from jaxest.studies import svd_ekf
 from jaxest.systems import bearings, duffing, flight_sim
 from jaxest.tune import fit, log_variance_standard_errors, log_variances, neg_loglik
@@ -193,9 +192,7 @@ def batch_metrics(estimator, problem: Problem, keys, chunk: int | None = None):
 def timed_metrics(estimator, problem: Problem, keys, chunk: int | None = None):
     """Metrics of every run (NumPy) and the run time per step and run, compilation excluded."""
     compiled = batch_metrics.lower(estimator, problem, keys, chunk).compile()
-    start = time.perf_counter()
-    metrics = jax.block_until_ready(compiled(estimator, problem, keys, chunk))
-    elapsed = time.perf_counter() - start
+    metrics, elapsed = timed_call(lambda: compiled(estimator, problem, keys, chunk))
     runs, T = problem.ys.shape[:2]
     return jax.tree.map(np.asarray, metrics), elapsed / (runs * T)
 
