@@ -3,11 +3,13 @@
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxest.studies import svd_ekf
-from jaxest.systems import flight_data
+from jaxest.systems import flight_data, flight_sim as sim
+from jaxest.systems.flight import N_KIN
 
 
 @pytest.mark.slow
@@ -27,6 +29,9 @@ def test_quick_study_writes_the_summary(tmp_path):
             assert F["rmse"]["theta"] < 0.5  # deg: the filters track the attitude
     own = summary["own_model_simulation"]["elevator_10hz_float64"]["ekf"]
     assert own["runs"] == 3 and own["rmse"]["theta"] < 0.5 and own["all"]["expected"] == 23
+    informed = summary["informed_initial_velocity"]["elevator_10hz_float64"]["ekf"]
+    assert informed["runs"] == 3 and informed["all"]["expected"] == 23
+    assert (out / "fig_nees_elevator.png").stat().st_size > 0
     if data is None:
         assert "real_data" not in summary and "flt_data.zip" in summary["real_data_note"]
     else:
@@ -43,6 +48,26 @@ def test_quick_study_writes_the_summary(tmp_path):
 
 
 @pytest.mark.slow
+def test_informed_initial_guesses_differ_from_the_study_s_only_in_the_velocity_error():
+    """The informed-velocity block flies the condition's own flights: the same draws, with the
+    initial u, v, w error scaled by INFORMED_VELOCITY_STD / 1 m/s and nothing else changed."""
+    truth = sim.true_flight("elevator", 10, 2.0)
+    key = jax.random.key(5)
+    study = svd_ekf.simulated_batch(truth, 4, key, jnp.float64)
+    std = svd_ekf.informed_kinematic_std()
+    informed = svd_ekf.simulated_batch(truth, 4, key, jnp.float64, kinematic_std=std)
+    for i in (0, 1, 3):  # measurements, inputs, true states
+        np.testing.assert_array_equal(study[i], informed[i])
+    error = lambda batch: np.asarray(batch[2] - batch[3][:, 0])  # initial guess - truth
+    scale = std / svd_ekf.KINEMATIC_STD
+    np.testing.assert_allclose(error(informed)[:, :N_KIN], error(study)[:, :N_KIN] * scale,
+                               rtol=1e-12, atol=1e-12)  # fmt: skip
+    np.testing.assert_array_equal(error(informed)[:, N_KIN:], error(study)[:, N_KIN:])
+    assert scale[:3] == pytest.approx(0.1) and np.all(scale[3:] == 1)
+    P0 = np.diag(svd_ekf.prior_cov(jnp.float64, std))
+    np.testing.assert_allclose(np.sqrt(P0[:N_KIN]), std, rtol=1e-15)
+
+
 def test_delay_estimate_recovers_a_simulated_vane_lag():
     """A simulated 25 Hz elevator maneuver whose alpha vane lags by 2 samples (0.08 s) and whose
     beta vane does not: the likelihood profile finds both delays."""
