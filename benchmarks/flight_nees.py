@@ -55,7 +55,6 @@ from jaxest.smoothers.iterated import iterated_smooth  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
 from jaxest.systems import flight_sim as sim  # noqa: E402
 from jaxest.systems.flight import (  # noqa: E402
-    KINEMATIC_STATES,
     N_STATE,
     OUTPUTS,
     PARAMETERS,
@@ -241,10 +240,6 @@ def pinned_iterated(maneuver, rate, runs, num_iters, pinned=("lam_beta",), seed=
     return out
 
 
-#: the kinematic states whose initial uncertainty :func:`initial_uncertainty` scales
-VELOCITIES = ("u", "v", "w")
-
-
 def initial_uncertainty(maneuver, rate, runs, scales=(1.0, 0.3, 0.1), seed=0) -> dict:
     """The paper's EKF on flights simulated from its own model (all 23 states, nothing pinned),
     with the initial velocity error and its prior std both ``scale`` times the study's
@@ -254,17 +249,17 @@ def initial_uncertainty(maneuver, rate, runs, scales=(1.0, 0.3, 0.1), seed=0) ->
     truth = sim.true_flight(maneuver, rate)
     key = flight_key(maneuver, rate, seed)
     model = svd_ekf.model_for(rate, jnp.float64)
-    velocities = np.isin(np.array(KINEMATIC_STATES), VELOCITIES)
     settle, out = int(svd_ekf.SETTLE_S * rate), {}
     for scale in scales:
-        kinematic_std = svd_ekf.KINEMATIC_STD * np.where(velocities, scale, 1.0)
+        velocity_std = scale * svd_ekf.KINEMATIC_STD[0]
+        kinematic_std = svd_ekf.kinematic_std_with_velocity(velocity_std)
         batch = svd_ekf.simulated_batch(truth, runs, key, jnp.float64,
                                         kinematic_std=kinematic_std)  # fmt: skip
         own = svd_ekf.own_model_flights(model, batch, jax.random.fold_in(key, 1))
         P0 = svd_ekf.prior_cov(jnp.float64, kinematic_std)
         metrics = svd_ekf.monte_carlo(EKF(), model, own, P0, settle, min(runs, 10))
         out[f"velocity_std_{scale:g}"] = svd_ekf.consistency(metrics, ~svd_ekf.diverged(metrics))
-        out[f"velocity_std_{scale:g}"]["velocity_std_m_s"] = float(scale * svd_ekf.KINEMATIC_STD[0])
+        out[f"velocity_std_{scale:g}"]["velocity_std_m_s"] = float(velocity_std)
         print(f"{maneuver} {rate} Hz initial velocity std x{scale:g}: NEES "
               f"{out[f'velocity_std_{scale:g}']['all']['nees']:.2f}", flush=True)  # fmt: skip
     return out

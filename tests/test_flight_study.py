@@ -47,14 +47,13 @@ def test_quick_study_writes_the_summary(tmp_path):
     assert (out / "tables.md").exists()
 
 
-@pytest.mark.slow
 def test_informed_initial_guesses_differ_from_the_study_s_only_in_the_velocity_error():
     """The informed-velocity block flies the condition's own flights: the same draws, with the
     initial u, v, w error scaled by INFORMED_VELOCITY_STD / 1 m/s and nothing else changed."""
     truth = sim.true_flight("elevator", 10, 2.0)
     key = jax.random.key(5)
     study = svd_ekf.simulated_batch(truth, 4, key, jnp.float64)
-    std = svd_ekf.informed_kinematic_std()
+    std = svd_ekf.kinematic_std_with_velocity(svd_ekf.INFORMED_VELOCITY_STD)
     informed = svd_ekf.simulated_batch(truth, 4, key, jnp.float64, kinematic_std=std)
     for i in (0, 1, 3):  # measurements, inputs, true states
         np.testing.assert_array_equal(study[i], informed[i])
@@ -68,6 +67,7 @@ def test_informed_initial_guesses_differ_from_the_study_s_only_in_the_velocity_e
     np.testing.assert_allclose(np.sqrt(P0[:N_KIN]), std, rtol=1e-15)
 
 
+@pytest.mark.slow
 def test_delay_estimate_recovers_a_simulated_vane_lag():
     """A simulated 25 Hz elevator maneuver whose alpha vane lags by 2 samples (0.08 s) and whose
     beta vane does not: the likelihood profile finds both delays."""

@@ -81,9 +81,9 @@ AGREEMENT_NOTE = (
     "0.07. In the aileron record the phi innovation follows the bank angle (about 1.7 % of phi), "
     "an error no parameter of eq 28 describes; it pulls b_p and b_r. Even on flights simulated "
     "from the filter's own discrete model the EKF's NEES exceeds 23 when its initial velocity is "
-    "uncertain by 1 m/s, as it is here (within 3 % of 23 from a 0.1 m/s start: "
-    "informed_initial_velocity), so formal standard errors are somewhat small before any "
-    "correction for coloured residuals."
+    "uncertain by 1 m/s, as it is here (from a 0.1 m/s start it is within 1 % of 23 there, and "
+    "informed_initial_velocity gives the study's simulator), so formal standard errors are "
+    "somewhat small before any correction for coloured residuals."
 )
 
 
@@ -283,10 +283,10 @@ def own_model_simulation(model, batch, P0, settle, chunk, key) -> dict:
     return summarise(metrics, ~diverged(metrics))
 
 
-def informed_kinematic_std():
-    """:data:`KINEMATIC_STD` with u, v, w at :data:`INFORMED_VELOCITY_STD`."""
+def kinematic_std_with_velocity(velocity_std: float):
+    """:data:`KINEMATIC_STD` with the velocities u, v, w at ``velocity_std`` (m/s)."""
     velocities = np.isin(np.array(KINEMATIC_STATES), ("u", "v", "w"))
-    return np.where(velocities, INFORMED_VELOCITY_STD, KINEMATIC_STD)
+    return np.where(velocities, velocity_std, KINEMATIC_STD)
 
 
 def informed_initial_velocity(truth, runs, key, model, settle, chunk):
@@ -295,7 +295,7 @@ def informed_initial_velocity(truth, runs, key, model, settle, chunk):
     excess of the 1 m/s conditions is h linearised about a velocity estimate that far off, which
     the maneuvers hardly correct (docs/papers/svd_ekf.md). Returns the :func:`summarise` block
     and the NEES over time, (runs, T, groups)."""
-    kinematic_std = informed_kinematic_std()
+    kinematic_std = kinematic_std_with_velocity(INFORMED_VELOCITY_STD)
     batch = simulated_batch(truth, runs, key, jnp.float64, kinematic_std=kinematic_std)
     P0 = prior_cov(jnp.float64, kinematic_std)
     metrics = monte_carlo(EKF(), model, batch, P0, settle, chunk)
@@ -838,6 +838,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     figures = () if quick else ((10, 1), (32, 2))  # --quick: only the real-data figure
     own_model = [c for c in conditions if c[0] == "elevator" and c[2] == "float64"]
     informed = [c for c in conditions if c[2] == "float64"]
+    informed_label = f"initial velocity std {INFORMED_VELOCITY_STD:g} m/s"
     total = len(conditions) * len(FILTERS) + len(own_model) + len(informed) + len(figures)
     total += (3 if quick else 7) if data_dir else 0
     with Progress(NAME, total) as progress:
@@ -878,14 +879,13 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
                     truth, runs, cond_key, model, settle, chunk
                 )
                 summary["informed_initial_velocity"][name] = {"ekf": block}
-                label = f"initial velocity std {INFORMED_VELOCITY_STD:g} m/s"
-                tables.append(table_row(f"{name} ({label})", "ekf", block))
-                progress.advance(f"{maneuver} {rate} Hz {label}")
+                tables.append(table_row(f"{name} ({informed_label})", "ekf", block))
+                progress.advance(f"{maneuver} {rate} Hz {informed_label}")
             if (maneuver, rate, dtype_name) in own_model:
                 velocity_std = f"initial velocity std {KINEMATIC_STD[0]:g} m/s"
                 nees_runs[rate] = {
                     f"SVD-EKF, {velocity_std}": metrics["svd_ekf"]["nees_t"][common],
-                    f"EKF, {label}": informed_nees,
+                    f"EKF, {informed_label}": informed_nees,
                 }
         if nees_runs:
             nees_figure(out / "fig_nees_elevator.png", nees_runs)
