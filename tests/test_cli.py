@@ -1,10 +1,13 @@
 """The command line: study listing, option checks and a quick study end to end."""
 
 import json
+import os
 import subprocess
 import sys
 
-from jaxest import cli, studies
+import jaxlib
+
+from jaxest import cli, studies, xla_flags
 
 
 def test_reproduce_help_lists_every_study(capsys):
@@ -27,9 +30,12 @@ def test_unknown_study_is_refused():
 
 
 def test_filters_study_quick(tmp_path):
+    # XLA flags of the user's own (here the suite's other one): the command keeps them and adds
+    # the flag that compiles faster (jaxest.xla_flags), and the index records what ran
+    env = {**os.environ, "XLA_FLAGS": " ".join(xla_flags.UNOPTIMISED_MACHINE_CODE)}
     done = subprocess.run(
         [sys.executable, "-m", "jaxest", "reproduce", "filters", "--quick", "--out", str(tmp_path)],
-        capture_output=True, text=True, timeout=900,
+        capture_output=True, text=True, timeout=900, env=env,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "[filters]" in done.stderr  # the progress display
@@ -44,7 +50,11 @@ def test_filters_study_quick(tmp_path):
     assert tuning["rmse"]["supervised"] < tuning["rmse"]["start"]
     for name in ("robustness.png", "tuning.png", "tables.md"):
         assert (tmp_path / "filters" / name).stat().st_size > 0
-    assert json.loads((tmp_path / "index.json").read_text())["filters"]["dir"].endswith("filters")
+    entry = json.loads((tmp_path / "index.json").read_text())["filters"]
+    assert entry["dir"].endswith("filters")
+    if jaxlib.__version__.startswith(xla_flags.MEASURED_JAXLIB):
+        recorded = entry["xla_flags"].split()
+        assert recorded == [*xla_flags.UNOPTIMISED_MACHINE_CODE, *xla_flags.FASTER_COMPILATION]
 
 
 def test_progress_estimates_what_remains_from_the_steps_done():
