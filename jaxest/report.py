@@ -46,7 +46,10 @@ def markdown_table(headers: list[str], rows: list[list], floatfmt: str = ".4g") 
 
 def emit_json(data, path=None) -> str:
     """Print ``data`` as JSON (non-finite numbers as null) and write it to ``path`` if given:
-    the output of every benchmark script."""
+    the output of every benchmark script. A dict gains ``"xla_flags"``, the process's
+    ``XLA_FLAGS``: compile times (and some run times) depend on them (:mod:`jaxest.xla_flags`)."""
+    if isinstance(data, dict):
+        data = {**data, "xla_flags": os.environ.get("XLA_FLAGS", "")}
     text = json.dumps(to_jsonable(data), indent=1)
     if path:
         Path(path).write_text(text)

@@ -1,5 +1,7 @@
-"""``jaxest.report.timed``: compile once, then time runs of the compiled program."""
+"""``jaxest.report``: ``timed`` compiles once, then times runs of the compiled program;
+``emit_json`` records the XLA flags the numbers were measured under."""
 
+import json
 import math
 import time
 
@@ -7,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from jaxest.report import timed
+from jaxest.report import emit_json, timed
 
 
 def counting_sleeper(calls: list):
@@ -32,3 +34,14 @@ def test_runs_once_to_warm_up_then_repeats(repeats, runs):
     assert math.isfinite(run_s) and run_s >= 0.02  # one run's time: at least its sleep
     assert compile_s >= 0.0
     assert jnp.array_equal(output, jnp.ones(3))
+
+
+def test_benchmark_output_records_the_xla_flags(monkeypatch, tmp_path, capsys):
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=false")
+    text = emit_json({"ratio": math.inf}, tmp_path / "out.json")
+    assert json.loads(text) == {"ratio": None, "xla_flags": "--xla_cpu_use_fusion_emitters=false"}
+    assert json.loads((tmp_path / "out.json").read_text()) == json.loads(text)
+    assert json.loads(capsys.readouterr().out) == json.loads(text)
+    monkeypatch.delenv("XLA_FLAGS")
+    assert json.loads(emit_json({}))["xla_flags"] == ""
+    assert json.loads(emit_json([1.0])) == [1.0]  # only a dict has a place for it
