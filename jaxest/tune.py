@@ -146,26 +146,34 @@ def _value_and_grad(objective, opt_state):
     return optax.value_and_grad_from_state(objective)
 
 
-def neg_loglik(estimator, ys, *, prior, inputs=None) -> Callable:
+def neg_loglik(estimator, ys, *, prior, inputs=None, checkpoint: bool = False) -> Callable:
     """Loss: minus the mean log-likelihood per run and step of a batch ``ys`` (runs, T, m).
 
     Only the log-likelihood is kept of each run (``SaveAt(fields=())``): no per-step arrays.
+    ``checkpoint``: as :func:`~jaxest.run`'s (the gradient recomputes the steps).
     """
     save = SaveAt(fields=())
 
     def loss(model):
-        one = lambda y, u: run(estimator, model, y, prior=prior, inputs=u, save=save).loglik
+        one = lambda y, u: (
+            run(estimator, model, y, prior=prior, inputs=u, save=save, checkpoint=checkpoint).loglik
+        )
         return -jnp.mean(jax.vmap(one)(ys, inputs)) / ys.shape[1]
 
     return loss
 
 
-def supervised_mse(estimator, ys, states, *, prior, inputs=None) -> Callable:
-    """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n)."""
+def supervised_mse(
+    estimator, ys, states, *, prior, inputs=None, checkpoint: bool = False
+) -> Callable:
+    """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n).
+    ``checkpoint``: as :func:`~jaxest.run`'s."""
     save = SaveAt(fields=("mean",))
 
     def loss(model):
-        one = lambda y, u: run(estimator, model, y, prior=prior, inputs=u, save=save).mean
+        one = lambda y, u: (
+            run(estimator, model, y, prior=prior, inputs=u, save=save, checkpoint=checkpoint).mean
+        )
         return jnp.mean((jax.vmap(one)(ys, inputs) - states) ** 2)
 
     return loss

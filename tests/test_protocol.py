@@ -240,3 +240,49 @@ def test_status_flags_extend_per_family():
     assert "unstick it" in Family.explain(64)
     with pytest.raises(ValueError, match="STUCK"):
         je.Status.extend("Clash", STUCK=(2, "taken"))
+
+
+@pytest.mark.parametrize("dtype, rtol", [(jnp.float64, 1e-12), (jnp.float32, 1e-5)])
+def test_checkpoint_stores_less_and_changes_no_value_or_gradient(dtype, rtol):
+    """``checkpoint=True`` recomputes each step in the reverse pass: the same loss and gradient
+    (under jit and vmap) from a compiled gradient that keeps a fraction of the intermediates."""
+    from jaxest.systems.duffing import Duffing
+
+    identity = lambda x, u=None: x
+    Q, R = 1e-5 * jnp.eye(2, dtype=dtype), 1e-4 * jnp.eye(2, dtype=dtype)
+    prior = je.Gaussian(jnp.asarray([0.2, 0.3], dtype), 0.01 * jnp.eye(2, dtype=dtype))
+    truth = je.NonlinearGaussian(Duffing(), identity, Q, R)
+    ys = je.simulate(truth, prior, 400, jax.random.PRNGKey(1)).y
+
+    def loss(q_scale, checkpoint):
+        model = je.NonlinearGaussian(Duffing(), identity, q_scale * Q, R)
+        result = je.run(je.EKF(), model, ys, prior=prior, checkpoint=checkpoint)
+        return result.loglik + jnp.sum(result.mean)
+
+    scales = jnp.asarray([0.5, 1.3, 2.0], dtype)
+    value_and_grad = {
+        ck: jax.jit(jax.vmap(jax.value_and_grad(loss), (0, None)), static_argnums=1)
+        for ck in (False, True)
+    }
+    stored, recomputed = (value_and_grad[ck](scales, ck) for ck in (False, True))
+    for a, b in zip(recomputed, stored, strict=True):
+        assert a.dtype == dtype
+        np.testing.assert_allclose(a, b, rtol=rtol)
+    temp = {
+        ck: value_and_grad[ck].lower(scales, ck).compile().memory_analysis().temp_size_in_bytes
+        for ck in (False, True)
+    }
+    assert temp[True] < temp[False] / 4
+
+
+def test_checkpoint_is_checked_before_tracing():
+    model, ys = linear_problem()
+    with pytest.raises(ValueError, match="^checkpoint: expected True or False"):
+        je.run(je.KalmanFilter(), model, ys, prior=PRIOR, checkpoint="yes")
+    with pytest.raises(ValueError, match="^checkpoint: .*parallel=False"):
+        je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR, checkpoint=True)
+    sequential = je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR, parallel=False)
+    checkpointed = je.run(
+        je.ParallelKalmanFilter(), model, ys, prior=PRIOR, parallel=False, checkpoint=True
+    )
+    np.testing.assert_allclose(checkpointed.loglik, sequential.loglik, rtol=1e-12)

@@ -8,7 +8,7 @@ import optax
 import pytest
 
 import jaxest as je
-from jaxest.filters import KalmanFilter
+from jaxest.filters import EKF, KalmanFilter
 from jaxest.montecarlo import monte_carlo
 from jaxest.tune import fit, from_unconstrained, neg_loglik, supervised_mse, to_unconstrained
 
@@ -135,3 +135,23 @@ def test_log_variance_standard_errors_from_a_finite_difference_hessian():
                 - total(theta - step(i, 1) + step(j, 1)) + total(theta - step(i, 1) - step(j, 1))
             ) / (4 * h * h)  # fmt: skip
     np.testing.assert_allclose(se, np.sqrt(np.diag(np.linalg.inv(hessian))), rtol=1e-4)
+
+
+def test_losses_pass_checkpoint_to_run():
+    """``checkpoint=True`` reaches ``run``: the compiled gradient keeps a fraction of the
+    intermediates (it recomputes the steps) and equals the one that stores them."""
+    truth, prior, sims = scalar_problem(runs=3, T=200)
+    for make in (
+        lambda ck: neg_loglik(EKF(), sims.y, prior=prior, checkpoint=ck),
+        lambda ck: supervised_mse(EKF(), sims.y, sims.states, prior=prior, checkpoint=ck),
+    ):
+        grads, temp = {}, {}
+        for ck in (False, True):
+            loss = make(ck)
+            grad = jax.jit(
+                jax.grad(lambda q, loss=loss: loss(eqx.tree_at(lambda m: m.Q, truth, q)))
+            )
+            temp[ck] = grad.lower(truth.Q).compile().memory_analysis().temp_size_in_bytes
+            grads[ck] = grad(truth.Q)
+        np.testing.assert_allclose(grads[True], grads[False], rtol=1e-12)
+        assert temp[True] < temp[False] / 2
