@@ -129,7 +129,8 @@ def run(
             associative estimators, the default for them.
         checkpoint: reverse-mode differentiation recomputes each step from its carried state
             (``jax.checkpoint`` on the scanned step) instead of storing the step's
-            intermediates: memory per step of the carried state only, and on small models
+            intermediates: per step it keeps the carried state (beside what ``save`` keeps),
+            and on small models
             faster gradients (the Duffing EKF's ``value_and_grad`` 11.4 against 4.0 us per
             step, 200 runs under ``vmap`` 0.62 against 0.37), but not everywhere (the 23-state
             flight EKF on one sequence 47 against 57 ms; docs/performance.md). Sequential
