@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -110,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": round(time.perf_counter() - start, 2),
             "dir": str(args.out / name),
             "quick": args.quick,
-            "xla_flags": os.environ.get("XLA_FLAGS", ""),
+            "xla_flags": xla_flags.current(),
         }
         print(
             f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}", file=sys.stderr

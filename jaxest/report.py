@@ -12,6 +12,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxest import xla_flags
+
 
 def to_jsonable(value):
     """Convert arrays/NumPy scalars to plain Python; non-finite floats become ``None`` (null)."""
@@ -49,7 +51,7 @@ def emit_json(data, path=None) -> str:
     the output of every benchmark script. A dict gains ``"xla_flags"``, the process's
     ``XLA_FLAGS``: compile times (and some run times) depend on them (:mod:`jaxest.xla_flags`)."""
     if isinstance(data, dict):
-        data = {**data, "xla_flags": os.environ.get("XLA_FLAGS", "")}
+        data = {**data, "xla_flags": xla_flags.current()}
     text = json.dumps(to_jsonable(data), indent=1)
     if path:
         Path(path).write_text(text)

@@ -146,21 +146,30 @@ def _value_and_grad(objective, opt_state):
     return optax.value_and_grad_from_state(objective)
 
 
+def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool, field: str):
+    """``model -> result.<field>`` of :func:`~jaxest.run` on every run of the batch ``ys``
+    (runs, T, m) under one ``vmap``: what the losses below are made of."""
+
+    def values(model):
+        def one(y, u):
+            result = run(
+                estimator, model, y, prior=prior, inputs=u, save=save, checkpoint=checkpoint
+            )
+            return getattr(result, field)
+
+        return jax.vmap(one)(ys, inputs)
+
+    return values
+
+
 def neg_loglik(estimator, ys, *, prior, inputs=None, checkpoint: bool = False) -> Callable:
     """Loss: minus the mean log-likelihood per run and step of a batch ``ys`` (runs, T, m).
 
     Only the log-likelihood is kept of each run (``SaveAt(fields=())``): no per-step arrays.
     ``checkpoint``: as :func:`~jaxest.run`'s (the gradient recomputes the steps).
     """
-    save = SaveAt(fields=())
-
-    def loss(model):
-        one = lambda y, u: (
-            run(estimator, model, y, prior=prior, inputs=u, save=save, checkpoint=checkpoint).loglik
-        )
-        return -jnp.mean(jax.vmap(one)(ys, inputs)) / ys.shape[1]
-
-    return loss
+    logliks = _over_runs(estimator, ys, inputs, prior, SaveAt(fields=()), checkpoint, "loglik")
+    return lambda model: -jnp.mean(logliks(model)) / ys.shape[1]
 
 
 def supervised_mse(
@@ -168,15 +177,8 @@ def supervised_mse(
 ) -> Callable:
     """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n).
     ``checkpoint``: as :func:`~jaxest.run`'s."""
-    save = SaveAt(fields=("mean",))
-
-    def loss(model):
-        one = lambda y, u: (
-            run(estimator, model, y, prior=prior, inputs=u, save=save, checkpoint=checkpoint).mean
-        )
-        return jnp.mean((jax.vmap(one)(ys, inputs) - states) ** 2)
-
-    return loss
+    means = _over_runs(estimator, ys, inputs, prior, SaveAt(fields=("mean",)), checkpoint, "mean")
+    return lambda model: jnp.mean((means(model) - states) ** 2)
 
 
 def log_variances(model):

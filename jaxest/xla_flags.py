@@ -41,12 +41,18 @@ def add(flags: tuple[str, ...]) -> tuple[str, ...]:
             raise ValueError(f"flags: {flag!r} is not of the form --name=value")
     if not jaxlib.__version__.startswith(MEASURED_JAXLIB):
         return ()
-    present = os.environ.get("XLA_FLAGS", "").split()
+    present = current().split()
     names_present = {_name(item) for item in present}
     added = tuple(flag for flag in flags if _name(flag) not in names_present)
     if added:
         os.environ["XLA_FLAGS"] = " ".join([*present, *added])
     return added
+
+
+def current() -> str:
+    """``XLA_FLAGS`` as this process holds it ("" where unset): what the studies' index and the
+    benchmarks' JSON record beside their times."""
+    return os.environ.get("XLA_FLAGS", "")
 
 
 def _name(flag: str) -> str:
