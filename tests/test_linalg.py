@@ -56,20 +56,26 @@ def test_cholesky_and_solves_match_lapack(n, dtype):
 
 @pytest.mark.parametrize("shape", [(1, 1, 1), (4, 4, 4), (2, 6, 3), (8, 8, 8), (9, 8, 8)])
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
-def test_mm_matches_matmul_with_its_derivatives(shape, dtype):
+@pytest.mark.parametrize("under_vmap", [False, True])
+def test_mm_matches_matmul_with_its_derivatives(shape, dtype, under_vmap):
+    """Values, tangents and gradients of five stacked products, written over the leading axis
+    (the one-sequence form) or mapped over it by vmap (the batched form)."""
     m, k, n = shape
     rng = np.random.default_rng(sum(shape))
     a, da = (jnp.asarray(rng.normal(size=(5, m, k)), dtype) for _ in range(2))
     b, db = (jnp.asarray(rng.normal(size=(5, k, n)), dtype) for _ in range(2))
     tol = 1e-5 if dtype == jnp.float32 else 1e-13
+    over_runs = jax.vmap if under_vmap else lambda fn: fn
     ref = np.asarray(a, np.float64) @ np.asarray(b, np.float64)
-    out = jax.jit(jax.vmap(mm))(a, b)
+    out = jax.jit(over_runs(mm))(a, b)
     assert out.dtype == dtype
     np.testing.assert_allclose(out, ref, rtol=tol, atol=tol)
-    tangent = jax.jit(lambda *a: jax.jvp(mm, a[:2], a[2:])[1])(a, b, da, db)
-    const_b = jax.jit(lambda a, b, da: jax.jvp(lambda a: mm(a, b), (a,), (da,))[1])(a, b, da)
+    jvp = over_runs(lambda *a: jax.jvp(mm, a[:2], a[2:])[1])
+    tangent = jax.jit(jvp)(a, b, da, db)
+    const_b = jax.jit(over_runs(lambda a, b, da: jax.jvp(lambda a: mm(a, b), (a,), (da,))[1]))
+    const_b = const_b(a, b, da)
     loss = lambda a, b: jnp.sum(jnp.sin(mm(a, b)))
-    g_a, g_b = jax.jit(jax.grad(loss, argnums=(0, 1)))(a, b)
+    g_a, g_b = jax.jit(over_runs(jax.grad(loss, argnums=(0, 1))))(a, b)
     if dtype == jnp.float64:  # the gradient against central differences
         step = 1e-6
         fd = jax.jit(
@@ -82,6 +88,29 @@ def test_mm_matches_matmul_with_its_derivatives(shape, dtype):
     g = np.cos(a @ b)
     np.testing.assert_allclose(g_a, g @ np.swapaxes(b, -1, -2), rtol=tol, atol=tol)
     np.testing.assert_allclose(g_b, np.swapaxes(a, -1, -2) @ g, rtol=tol, atol=tol)
+
+
+def test_mm_takes_the_form_of_how_it_runs():
+    """One sequence: a multiply-and-reduce. Under vmap, with either operand or both batched,
+    and in a vmap of a vmap: the rank-one terms, with no reduction (the form XLA:CPU
+    vectorises over the batch), and the values of a @ b."""
+    rng = np.random.default_rng(0)
+    a, b = jnp.asarray(rng.normal(size=(3, 4))), jnp.asarray(rng.normal(size=(4, 2)))
+    a5, b5 = jnp.stack([a * i for i in range(5)]), jnp.stack([b * i for i in range(5)])
+
+    def reductions(fn, *args):
+        return str(jax.make_jaxpr(fn)(*args)).count("reduce_sum")
+
+    assert reductions(mm, a, b) == 1
+    for in_axes, args in (((0, 0), (a5, b5)), ((0, None), (a5, b)), ((None, 0), (a, b5))):
+        assert reductions(jax.vmap(mm, in_axes), *args) == 0
+        np.testing.assert_allclose(
+            jax.vmap(mm, in_axes)(*args), jax.vmap(jnp.matmul, in_axes)(*args), rtol=1e-13
+        )
+    nested = jax.vmap(jax.vmap(mm))
+    a25, b25 = jnp.stack([a5] * 5), jnp.stack([b5 * 2] * 5)
+    assert reductions(nested, a25, b25) == 0
+    np.testing.assert_allclose(nested(a25, b25), a25 @ b25, rtol=1e-13)
 
 
 def test_mv_is_mm_of_a_column():
