@@ -93,7 +93,7 @@ def test_mm_matches_matmul_with_its_derivatives(shape, dtype, under_vmap):
 def test_mm_takes_the_form_of_how_it_runs():
     """One sequence: a multiply-and-reduce. Under vmap, with either operand or both batched,
     and in a vmap of a vmap: the rank-one terms, with no reduction (the form XLA:CPU
-    vectorises over the batch), and the values of a @ b."""
+    vectorises over the batch), and the values of a @ b; its Hessian through the vmap."""
     rng = np.random.default_rng(0)
     a, b = jnp.asarray(rng.normal(size=(3, 4))), jnp.asarray(rng.normal(size=(4, 2)))
     a5, b5 = jnp.stack([a * i for i in range(5)]), jnp.stack([b * i for i in range(5)])
@@ -111,6 +111,10 @@ def test_mm_takes_the_form_of_how_it_runs():
     a25, b25 = jnp.stack([a5] * 5), jnp.stack([b5 * 2] * 5)
     assert reductions(nested, a25, b25) == 0
     np.testing.assert_allclose(nested(a25, b25), a25 @ b25, rtol=1e-13)
+    # differentiated around the vmap, reverse then forward (the batched form's derivative)
+    hessian = jax.hessian(lambda a: jnp.sum(jnp.sin(jax.vmap(mm)(a, b5))))(a5)
+    reference = jax.hessian(lambda a: jnp.sum(jnp.sin(a @ b5)))(a5)
+    np.testing.assert_allclose(hessian, reference, atol=1e-12)
 
 
 def test_mv_is_mm_of_a_column():
