@@ -73,6 +73,26 @@ def test_zero_weights_are_never_resampled():
         assert set(np.unique(np.asarray(idx))) <= {1, 3}
 
 
+def test_resampling_searches_by_a_loop_on_the_cpu_and_by_a_sort_on_gpus():
+    """The platform switch of the inverse-CDF search: the CUDA program sorts and the CPU program
+    loops (both lowered here, on the CPU), and the sort finds the same indices as the binary
+    search, with zero weights (equal CDF values) and u on the CDF's values included."""
+    from jax import export
+
+    from jaxest.filters.particle import _search_sorted
+
+    w = jnp.concatenate([jnp.zeros(3), jax.random.uniform(jax.random.PRNGKey(0), (997,))])
+    cdf = jnp.cumsum(w.at[500:510].set(0.0))
+    cdf = cdf / cdf[-1]
+    u = jnp.concatenate([jax.random.uniform(jax.random.PRNGKey(1), (1000,)), cdf[::7]])
+    for platform, sorts in (("cpu", False), ("cuda", True)):
+        program = export.export(jax.jit(_search_sorted), platforms=[platform])(cdf, u)
+        text = program.mlir_module()
+        assert ("stablehlo.sort" in text) == sorts and ("stablehlo.while" in text) != sorts
+    by_sort = jnp.searchsorted(cdf, u, side="right", method="sort")
+    np.testing.assert_array_equal(jax.jit(_search_sorted)(cdf, u), by_sort)
+
+
 # --- likelihood against the Kalman filter ----------------------------------------------------
 
 

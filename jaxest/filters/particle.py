@@ -97,7 +97,22 @@ def resample(key, weights: Float[Array, " N"], scheme: str = "systematic") -> In
         raise ValueError(f"resampling: expected one of {RESAMPLING}, got {scheme!r}")
     cdf = jnp.cumsum(weights)
     cdf = cdf / cdf[-1]
-    return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), N - 1)
+    return jnp.minimum(_search_sorted(cdf, u), N - 1)
+
+
+def _search_sorted(cdf, u):
+    """``jnp.searchsorted(cdf, u, side="right")`` by the method that is fastest on the platform:
+    the binary search ("scan", a loop of log2 N steps) on the CPU, a sort of cdf and u together
+    on accelerators, where each loop step launches kernels. Measured with
+    ``benchmarks/particle.py`` (N = 1000, T = 200, same indices): on the 2-core CPU (``--quick``)
+    the sort took 2.4-3.5x the binary search's time; on an NVIDIA H100 the binary search took
+    2.7x the sort's on one sequence (200 against 74 us per step) and 1.5x under ``vmap`` over
+    200 runs (0.97 against 0.65 us per step and run)."""
+
+    def search(method):
+        return lambda cdf, u: jnp.searchsorted(cdf, u, side="right", method=method)
+
+    return jax.lax.platform_dependent(cdf, u, cpu=search("scan"), default=search("sort"))
 
 
 class GaussianTransition(eqx.Module):
