@@ -7,9 +7,15 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 import pytest
+from jax import export
 
 import jaxest as je
-from jaxest.filters.particle import AbstractProposal, GaussianTransition, resample
+from jaxest.filters.particle import (
+    AbstractProposal,
+    GaussianTransition,
+    _search_sorted,
+    resample,
+)
 
 PRIOR = je.Gaussian(jnp.zeros(1), jnp.eye(1))
 SAVE_NONE = je.SaveAt(fields=())
@@ -77,10 +83,6 @@ def test_resampling_searches_by_a_loop_on_the_cpu_and_by_a_sort_on_gpus():
     """The platform switch of the inverse-CDF search: the CUDA program sorts and the CPU program
     loops (both lowered here, on the CPU), and the sort finds the same indices as the binary
     search, with zero weights (equal CDF values) and u on the CDF's values included."""
-    from jax import export
-
-    from jaxest.filters.particle import _search_sorted
-
     w = jnp.concatenate([jnp.zeros(3), jax.random.uniform(jax.random.PRNGKey(0), (997,))])
     cdf = jnp.cumsum(w.at[500:510].set(0.0))
     cdf = cdf / cdf[-1]
