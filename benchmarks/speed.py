@@ -136,6 +136,30 @@ def smf_problem():
     return jaxest_volume, numpy_volume
 
 
+def gaussian_data(model, prior, runs, steps):
+    """The measurements of ``runs`` simulated sequences (seed 1) and a Q scale per run."""
+    keys = jax.random.split(jax.random.PRNGKey(1), runs)
+    ys = jax.vmap(lambda k: je.simulate(model, prior, steps, k).y)(keys)
+    return ys, jnp.linspace(0.5, 2.0, runs)
+
+
+def smf_data(runs):
+    """The measurements of ``runs`` fault-free runs of the smf-fdi study's protocol (seed 1) and
+    a process-bound scale per run."""
+    keys = jax.random.split(jax.random.PRNGKey(1), runs)
+    ys = jax.vmap(lambda k: smf_fdi.simulate_run(k, None)[1])(keys)
+    return ys, jnp.linspace(0.5, 2.0, runs)
+
+
+def jaxest_case(problem, runs=RUNS, steps=T):
+    """jaxest's function of a problem, ``(scale, ys) -> outputs``, with the data and scales
+    its rows are timed on (benchmarks/profile_step.py profiles it)."""
+    if problem == "duffing_smf":
+        return smf_problem()[0], *smf_data(runs)
+    model, prior, ours, _ = GAUSSIAN_PROBLEMS[problem]()
+    return ours, *gaussian_data(model, prior, runs, steps)
+
+
 def passes(loglik):
     """forward and value_and_grad versions of a (q_scale, ys) -> (loglik, means) function."""
     value_and_grad = jax.value_and_grad(lambda q, ys: loglik(q, ys)[0])
@@ -156,9 +180,7 @@ def numpy_seconds(fn, scales, ys, repeats: int = 3) -> float:
 def dynamax_rows(name, build, args):
     """The rows of one problem against dynamax (same data, same modes and passes)."""
     model, prior, ours, theirs = build()
-    keys = jax.random.split(jax.random.PRNGKey(1), args.runs)
-    ys = jax.vmap(lambda k: je.simulate(model, prior, args.steps, k).y)(keys)
-    scales = jnp.linspace(0.5, 2.0, args.runs)  # a different Q per run
+    ys, scales = gaussian_data(model, prior, args.runs, args.steps)
     a, b = ours(1.0, ys[0])[0], theirs(1.0, ys[0])[0]
     if not np.isclose(a, b, rtol=1e-6):  # Joseph vs plain update differ in rounding
         raise RuntimeError(f"{name}: the two libraries disagree ({a} vs {b}): not the same problem")
@@ -184,10 +206,8 @@ def modes(ys, scales):
 def smf_rows(args):
     """The SMF rows: jaxest (single run, and vmap over runs) against the NumPy loop."""
     ours, numpy_volume = smf_problem()
-    keys = jax.random.split(jax.random.PRNGKey(1), args.runs)
-    ys = jax.vmap(lambda k: smf_fdi.simulate_run(k, None)[1])(keys)
+    ys, scales = smf_data(args.runs)
     steps = ys.shape[1]
-    scales = jnp.linspace(0.5, 2.0, args.runs)  # a different process bound per run
     a, b = ours(1.0, ys[0])[0], numpy_volume(1.0, ys[0])[0]
     if not np.isclose(a, b, rtol=1e-9):
         raise RuntimeError(f"duffing_smf: jaxest and the NumPy loop disagree ({a} vs {b})")
@@ -221,10 +241,17 @@ def row(problem, mode, pass_name, ours_s, theirs_s, compile_s):
     return result
 
 
+#: the problems with a dynamax reference, by name
+GAUSSIAN_PROBLEMS = {
+    "linear_4x2": linear_problem,
+    "linear_6x3": lambda: linear_problem(6, 3),
+    "duffing_ekf": duffing_problem,
+}
 PROBLEMS = {
-    "linear_4x2": lambda args: dynamax_rows("linear_4x2", linear_problem, args),
-    "linear_6x3": lambda args: dynamax_rows("linear_6x3", lambda: linear_problem(6, 3), args),
-    "duffing_ekf": lambda args: dynamax_rows("duffing_ekf", duffing_problem, args),
+    **{
+        name: (lambda args, name=name: dynamax_rows(name, GAUSSIAN_PROBLEMS[name], args))
+        for name in GAUSSIAN_PROBLEMS
+    },
     "duffing_smf": smf_rows,
 }
 

@@ -1,0 +1,96 @@
+"""Where one row of benchmarks/speed.py spends its time: XLA's operations per step, from a profile.
+
+Runs jaxest's compiled function of the row (speed.py's problem, data, mode and pass) once under
+``jax.profiler`` and sums the trace's events by operation name. On the CPU each event is one
+thunk: a fusion, a copy, a library call. ``per_step`` is an operation run once per time step, or
+once per step of the reverse pass. XLA:CPU reports its thunks only with
+``--xla_cpu_enable_xprof_traceme=true``, which this script adds to ``XLA_FLAGS``. The profiler
+itself slows the run, so read the shares, not the absolute times; speed.py gives those.
+
+    python benchmarks/profile_step.py linear_6x3 vmap200 forward [--top 12] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import os
+
+# before jax starts its backend: the CPU thunks appear in a trace only with this flag
+os.environ["XLA_FLAGS"] = (
+    os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_xprof_traceme=true"
+).strip()
+
+import argparse  # noqa: E402
+import collections  # noqa: E402
+import gzip  # noqa: E402
+import json  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import jax  # noqa: E402
+from speed import PROBLEMS, RUNS, T, jaxest_case, modes, passes  # noqa: E402
+
+from jaxest.report import emit_json  # noqa: E402
+
+#: trace events that are not XLA operations (the profiler's and the runtime's own spans)
+NOT_AN_OPERATION = ("$", "ThunkExecutor", "PjitFunction", "end: ")
+
+
+def operation_times(trace_dir: Path) -> tuple[collections.Counter, collections.Counter]:
+    """(total microseconds, number of events) per operation name in the perfetto trace."""
+    (trace,) = trace_dir.rglob("*.trace.json.gz")
+    events = json.loads(gzip.decompress(trace.read_bytes()))
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    total, calls = collections.Counter(), collections.Counter()
+    for event in events:
+        name = event.get("name", "")
+        if event.get("ph") == "X" and not name.startswith(NOT_AN_OPERATION):
+            total[name] += event.get("dur", 0)
+            calls[name] += 1
+    return total, calls
+
+
+def profile(problem: str, mode: str, pass_name: str, runs: int, steps: int, top: int) -> dict:
+    fn, ys, scales = jaxest_case(problem, runs, steps)
+    (wrap, args, _), *_ = [(w, a, p) for m, w, a, p in modes(ys, scales) if m == mode]
+    compiled = jax.jit(wrap(passes(fn)[pass_name])).lower(*args).compile()
+    jax.block_until_ready(compiled(*args))  # warm up
+    with tempfile.TemporaryDirectory() as trace_dir:
+        jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)
+        jax.block_until_ready(compiled(*args))
+        jax.profiler.stop_trace()
+        total, calls = operation_times(Path(trace_dir))
+    time_steps = ys.shape[1]
+    per_step = [name for name in calls if calls[name] >= time_steps]
+    all_us = sum(total.values())
+    return {
+        "problem": problem,
+        "mode": mode,
+        "pass": pass_name,
+        "time_steps": time_steps,
+        "operations_per_step": sum(calls[name] for name in per_step) / time_steps,
+        "per_step_share": sum(total[name] for name in per_step) / all_us,
+        "top": [
+            {"operation": name, "calls": calls[name], "share": us / all_us}
+            for name, us in total.most_common(top)
+        ],
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("problem", choices=list(PROBLEMS))
+    parser.add_argument("mode", choices=["single", "vmap200"])
+    parser.add_argument("pass_name", metavar="pass", choices=["forward", "value_and_grad"])
+    parser.add_argument("--top", type=int, default=12, help="operations listed (default 12)")
+    parser.add_argument("--steps", type=int, default=T, help="time steps per run (default 1000)")
+    parser.add_argument("--runs", type=int, default=RUNS, help="runs under vmap (default 200)")
+    parser.add_argument("--json", help="write the result here as well as to stdout")
+    args = parser.parse_args(argv)
+    result = profile(args.problem, args.mode, args.pass_name, args.runs, args.steps, args.top)
+    emit_json(result, args.json)
+
+
+if __name__ == "__main__":
+    main()
