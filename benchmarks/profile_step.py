@@ -14,10 +14,11 @@ from __future__ import annotations
 
 import os
 
-# before jax starts its backend: the CPU thunks appear in a trace only with this flag
-os.environ["XLA_FLAGS"] = (
-    os.environ.get("XLA_FLAGS", "") + " --xla_cpu_enable_xprof_traceme=true"
-).strip()
+from jaxest import xla_flags
+
+# before jax starts its backend: the CPU thunks appear in a trace only with this flag (set
+# directly, not by xla_flags.add, which adds only on the jaxlib its flags were measured on)
+os.environ["XLA_FLAGS"] = f"{xla_flags.current()} --xla_cpu_enable_xprof_traceme=true".strip()
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
@@ -51,7 +52,7 @@ def operation_times(trace_dir: Path) -> tuple[collections.Counter, collections.C
 
 def profile(problem: str, mode: str, pass_name: str, runs: int, steps: int, top: int) -> dict:
     fn, ys, scales = jaxest_case(problem, runs, steps)
-    (wrap, args, _), *_ = [(w, a, p) for m, w, a, p in modes(ys, scales) if m == mode]
+    wrap, args = next((w, a) for m, w, a, _ in modes(ys, scales) if m == mode)
     compiled = jax.jit(wrap(passes(fn)[pass_name])).lower(*args).compile()
     jax.block_until_ready(compiled(*args))  # warm up
     with tempfile.TemporaryDirectory() as trace_dir:

@@ -131,7 +131,7 @@ def run(
             (``jax.checkpoint`` on the scanned step) instead of storing the step's
             intermediates: per step it keeps the carried state (beside what ``save`` keeps),
             and on small models the gradient is faster (the Duffing EKF's ``value_and_grad``
-            11.4 against 4.0 us per step, 200 runs under ``vmap`` 0.62 against 0.37), but not
+            8.6 against 3.7 us per step, 200 runs under ``vmap`` 0.57 against 0.35), but not
             everywhere (the 23-state flight EKF on one sequence 47 against 57 ms;
             docs/performance.md). Sequential runs only. Values and gradients are unchanged.
         throw: raise (``eqx.error_if``) if any step's status is not OK, with what to do.
