@@ -1,6 +1,7 @@
 """The svd-ekf study end to end in its --quick form."""
 
 import json
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -239,3 +240,17 @@ def test_trim_reparametrisation_moves_the_alpha_offset_to_the_trim_angle():
     keep = [0, 2, 3]
     np.testing.assert_allclose(new_mean[keep], mean[keep])
     np.testing.assert_allclose(new_cov[np.ix_(keep, keep)], cov[np.ix_(keep, keep)])
+
+
+def test_channel_rms_skips_missing_samples_and_channels_without_a_warning():
+    """Per channel over the measured samples after the settle window; a channel with no sample
+    (HFB-320's altitude) is NaN, and numpy's "Mean of empty slice" warning is not raised."""
+    residuals = np.full((5, len(svd_ekf.OUTPUTS)), np.nan)
+    residuals[:, 0] = [9.0, 3.0, np.nan, 4.0, 0.0]  # settle = 1 drops the 9
+    residuals[2:, 1] = 2.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rms = svd_ekf.channel_rms(residuals, settle=1)
+    units = np.asarray(svd_ekf.OUTPUT_UNITS)
+    np.testing.assert_allclose(rms[:2], np.array([np.sqrt(25.0 / 3), 2.0]) * units[:2])
+    assert np.all(np.isnan(rms[2:]))

@@ -484,13 +484,22 @@ def plot_delay_profiles(path, profiles, delays, grid):
     save(fig, path, dpi=90)
 
 
+def channel_rms(residuals, settle):
+    """RMS per output channel in output units over the samples after ``settle`` that were
+    measured; NaN for a channel the record does not have (HFB-320 has no altitude channel),
+    without numpy's "Mean of empty slice" warning."""
+    squares = residuals[settle:] ** 2
+    count = np.sum(np.isfinite(squares), axis=0)
+    total = np.nansum(squares, axis=0)
+    return np.sqrt(np.where(count > 0, total / np.maximum(count, 1), np.nan)) * OUTPUT_UNITS
+
+
 def residual_rms(data, result, model, inputs, settle):
     """RMS of the innovations y_k - h(x(k|k-1)) (one-step prediction errors) and of the filtered
     residuals y_k - h(x(k|k)), per output channel in output units, after ``settle`` samples."""
     pred = np.asarray(jax.vmap(model.h)(result.predicted_mean, inputs))
     post = np.asarray(jax.vmap(model.h)(result.mean, inputs))
-    rms = lambda r: np.sqrt(np.nanmean((r[settle:]) ** 2, axis=0)) * OUTPUT_UNITS
-    innov, filt = rms(data.outputs - pred), rms(data.outputs - post)
+    innov, filt = channel_rms(data.outputs - pred, settle), channel_rms(data.outputs - post, settle)
     as_dict = lambda v: {
         o: (float(v[i]) if np.isfinite(v[i]) else None) for i, o in enumerate(OUTPUTS)
     }
@@ -713,7 +722,7 @@ def joint_residuals(data, input_std, output_std, kappa, values):
 def smoothed_residual_rms(data, model, smooth, inputs):
     """RMS of y_k - h(x(k|T)) per output channel, in output units."""
     computed = np.asarray(jax.vmap(model.h)(smooth.mean, inputs))
-    rms = np.sqrt(np.nanmean((data.outputs - computed) ** 2, axis=0)) * OUTPUT_UNITS
+    rms = channel_rms(data.outputs - computed, 0)
     return {o: float(rms[i]) for i, o in enumerate(OUTPUTS) if np.isfinite(rms[i])}
 
 
