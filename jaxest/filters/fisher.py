@@ -27,8 +27,10 @@ Cov(y_k - H x_k) = H P(k|T) H^T. Written out (symmetric S; r_bar = E[r]):
     dL/dH_k = R_k^-1 (e_bar x(k|T)^T - H_k P(k|T)),            dL/dD_k = R_k^-1 e_bar u_k^T,
     dL/dy_k = -R_k^-1 e_bar,   dL/du_k = B_k^T Q_k^-1 r_bar + D_k^T R_k^-1 e_bar,        (4)
 
-e_bar = y_k - H_k x(k|T) - D_k u_k; they are what ``jax.grad`` of (2)-(3) computes here, through
-the model's own ``transition`` / ``observation`` (time-varying matrices and inputs included).
+e_bar = y_k - H_k x(k|T) - D_k u_k. Here they are not formed: the rule's tangent, their inner
+product with the parameters' tangents, is ``jax.jvp`` of (2)-(3) at the fixed smoothed moments,
+through the model's own ``transition`` / ``observation`` (time-varying matrices and inputs
+included), and (3) carries its own derivative in closed form (:func:`expected_logpdf`).
 Missing (NaN) entries of y_k leave their term out: (2) is written with the filter's masked
 measurement (:func:`~jaxest.filters.common.masked_measurement`), whose R has the observed block
 and an identity elsewhere and whose H rows and innovation are zero there, so the missing rows
@@ -42,8 +44,10 @@ Covariance gradients are symmetric: they are the derivatives along symmetric per
 filter uses P0 unsymmetrised, so autodiff's gradient for it need not be symmetric; the symmetric
 parts agree).
 
-The rule is a ``custom_jvp``: its tangent is the inner product of (4) with the parameters'
-tangents, linear in them, so reverse mode (``grad``) transposes it and forward mode (``jvp``,
+The rule is a ``custom_jvp``: its tangent is that inner product, linear in the parameters'
+tangents, so reverse mode (``grad``) transposes it (the forward-mode derivative of (2) traces
+faster than its gradient and an inner product: the linear 4 x 2 Kalman log-likelihood's
+gradient in 0.73 against 0.85 s) and forward mode (``jvp``,
 ``jax.hessian`` = forward over reverse) differentiates the smoother and (4) by autodiff, which is
 exact: (4) equals the gradient of log p(y) at every theta.
 """
@@ -142,10 +146,9 @@ def _fisher_loglik_jvp(primals, tangents):
             k0=ks[0], save=SaveAt(fields=NEEDED),
         )  # fmt: skip
     moments = rts_smooth(model, filtered, inputs=inputs)
-    gradient = jax.grad(expected_complete_loglik, argnums=(0, 1, 2, 3))(
-        model, prior, ys, inputs, ks, moments
+    _, tangent = jax.jvp(
+        lambda *params: expected_complete_loglik(*params, ks, moments),
+        (model, prior, ys, inputs),
+        (d_model, d_prior, d_ys, d_inputs),
     )
-    products = jax.tree.map(
-        lambda g, d: jnp.vdot(g, d), gradient, (d_model, d_prior, d_ys, d_inputs)
-    )
-    return loglik, sum(jax.tree.leaves(products), jnp.zeros_like(loglik))
+    return loglik, tangent
