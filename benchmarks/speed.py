@@ -18,6 +18,7 @@ Per-step time = wall time / (runs * T), best of several repeats after compilatio
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import json
 import math
@@ -136,19 +137,21 @@ def smf_problem():
     return jaxest_volume, numpy_volume
 
 
-def gaussian_data(model, prior, runs, steps):
-    """The measurements of ``runs`` simulated sequences (seed 1) and a Q scale per run."""
+def _runs(measurements, runs):
+    """``measurements(key)`` of ``runs`` keys (seed 1) and a noise scale per run, 0.5 to 2."""
     keys = jax.random.split(jax.random.PRNGKey(1), runs)
-    ys = jax.vmap(lambda k: je.simulate(model, prior, steps, k).y)(keys)
-    return ys, jnp.linspace(0.5, 2.0, runs)
+    return jax.vmap(measurements)(keys), jnp.linspace(0.5, 2.0, runs)
+
+
+def gaussian_data(model, prior, runs, steps):
+    """The measurements of ``runs`` simulated sequences and a Q scale per run."""
+    return _runs(lambda k: je.simulate(model, prior, steps, k).y, runs)
 
 
 def smf_data(runs):
-    """The measurements of ``runs`` fault-free runs of the smf-fdi study's protocol (seed 1) and
-    a process-bound scale per run."""
-    keys = jax.random.split(jax.random.PRNGKey(1), runs)
-    ys = jax.vmap(lambda k: smf_fdi.simulate_run(k, None)[1])(keys)
-    return ys, jnp.linspace(0.5, 2.0, runs)
+    """The measurements of ``runs`` fault-free runs of the smf-fdi study's protocol and a
+    process-bound scale per run."""
+    return _runs(lambda k: smf_fdi.simulate_run(k, None)[1], runs)
 
 
 def jaxest_case(problem, runs=RUNS, steps=T):
@@ -249,8 +252,8 @@ GAUSSIAN_PROBLEMS = {
 }
 PROBLEMS = {
     **{
-        name: (lambda args, name=name: dynamax_rows(name, GAUSSIAN_PROBLEMS[name], args))
-        for name in GAUSSIAN_PROBLEMS
+        name: functools.partial(dynamax_rows, name, build)
+        for name, build in GAUSSIAN_PROBLEMS.items()
     },
     "duffing_smf": smf_rows,
 }
