@@ -92,7 +92,7 @@ def test_mm_matches_matmul_with_its_derivatives(shape, dtype, under_vmap):
 def test_mm_takes_the_form_of_how_it_runs():
     """One sequence: a multiply-and-reduce. Under vmap, with either operand or both batched,
     and in a vmap of a vmap: the rank-one terms, with no reduction (the form XLA:CPU
-    vectorises over the batch), or above SMALL_BATCHED_MATMUL a dot; the values of a @ b; its
+    vectorises over the batch), or above SMALL_BATCHED_MATMUL on the CPU a dot; the values of a @ b; its
     Hessian through the vmap."""
     rng = np.random.default_rng(0)
     a, b = jnp.asarray(rng.normal(size=(3, 4))), jnp.asarray(rng.normal(size=(4, 2)))
@@ -111,11 +111,15 @@ def test_mm_takes_the_form_of_how_it_runs():
     a25, b25 = jnp.stack([a5] * 5), jnp.stack([b5 * 2] * 5)
     assert reductions(nested, a25, b25) == 0
     np.testing.assert_allclose(nested(a25, b25), a25 @ b25, rtol=1e-13)
-    # above SMALL_BATCHED_MATMUL multiply-adds the batched form is a dot (5^3 below, 6^3 above)
+    # above SMALL_BATCHED_MATMUL multiply-adds (5^3 below, 6^3 above) the batched form is a
+    # dot on the CPU; other platforms (lowered here for CUDA) keep the rank-one sum
     for size, dots in ((5, 0), (6, 1)):
         square = jnp.stack([jnp.asarray(rng.normal(size=(size, size))) for _ in range(5)])
         jaxpr = str(jax.make_jaxpr(jax.vmap(mm))(square, square))
         assert jaxpr.count("dot_general") == dots and jaxpr.count("reduce_sum") == 0
+        for platform, platform_dots in (("cpu", dots), ("cuda", 0)):
+            lowered = jax.export.export(jax.jit(jax.vmap(mm)), platforms=[platform])
+            assert ("dot_general" in lowered(square, square).mlir_module()) == bool(platform_dots)
         np.testing.assert_allclose(jax.vmap(mm)(square, square), square @ square, rtol=1e-13)
     # differentiated around the vmap, reverse then forward (the batched form's derivative)
     hessian = jax.hessian(lambda a: jnp.sum(jnp.sin(jax.vmap(mm)(a, b5))))(a5)
