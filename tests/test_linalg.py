@@ -92,8 +92,8 @@ def test_mm_matches_matmul_with_its_derivatives(shape, dtype, under_vmap):
 def test_mm_takes_the_form_of_how_it_runs():
     """One sequence: a multiply-and-reduce. Under vmap, with either operand or both batched,
     and in a vmap of a vmap: the rank-one terms, with no reduction (the form XLA:CPU
-    vectorises over the batch), or above SMALL_BATCHED_MATMUL on the CPU a dot; the values of a @ b; its
-    Hessian through the vmap."""
+    vectorises over the batch), or on the CPU above SMALL_BATCHED_MATMUL a dot; the values
+    of a @ b; its Hessian through the vmap."""
     rng = np.random.default_rng(0)
     a, b = jnp.asarray(rng.normal(size=(3, 4))), jnp.asarray(rng.normal(size=(4, 2)))
     a5, b5 = jnp.stack([a * i for i in range(5)]), jnp.stack([b * i for i in range(5)])
