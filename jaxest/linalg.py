@@ -225,26 +225,27 @@ def mm(a, b):
       against 6.5-6.7 us per step.
     - under ``vmap``: the sum over k of the rank-one terms, which XLA:CPU vectorises over the
       whole batch, where the multiply-and-reduce runs as scalar loops of length k (4 x 2
-      Kalman filter, 200 runs: 3.4x faster per step). Up to ``SMALL_BATCHED_MATMUL``
-      multiply-adds; above it the batched dot. XLA fuses the rank-one sum into its consumer,
-      and a consumer that reads each entry several times recomputes it for every entry it
-      writes: in the Joseph update's (I - K H) P (I - K H)^T of a 6-state filter the inner
-      product was computed six times over, and two such fusions took 63 % of the step. With
-      the dot above 200, 200 runs of the Kalman filter: 6 states 0.77 -> 0.66 us per step and
-      run, 7 states 1.59 -> 0.83, 8 states 0.81 -> 0.57; 4 and 5 states (64 and 125
-      multiply-adds) stay fused, where the dot would be 1.4-2.5x slower. On the CPU only: on
-      an NVIDIA H200 the rank-one sum stays faster at every size (6 states 0.137 against 0.182
-      us with the dot, 8 states 0.190 against 0.247), so other platforms keep it
-      (``lax.platform_dependent``).
+      Kalman filter, 200 runs: 3.4x faster per step), up to ``SMALL_BATCHED_MATMUL``
+      multiply-adds. Above it, on the CPU, the batched dot: XLA fuses the rank-one sum into
+      its consumer, and a consumer that reads each entry several times recomputes it per entry
+      written (the inner product of a 6-state Joseph update six times over). 200 runs of the
+      Kalman filter: 6 states 0.77 -> 0.66 us per step and run, 7 states 1.59 -> 0.83; below
+      the threshold the dot is slower. An NVIDIA H200 runs the rank-one sum faster at every
+      size, so other platforms keep it (``lax.platform_dependent``; docs/performance.md has
+      the figures).
 
     The derivative is the multiply-and-reduce in both cases (its transpose is again one per
     operand). ``custom_vmap`` cannot be transposed, so a custom derivative rule must not apply
     :func:`mm` to tangents (reverse mode would fail): ``jnp.matmul`` there.
     """
-    m, k, n = a.shape[-2], a.shape[-1], b.shape[-1]
-    if m * k * n > SMALL_MATMUL:
+    if _multiply_adds(a, b) > SMALL_MATMUL:
         return a @ b
     return _small_mm(a, b)
+
+
+def _multiply_adds(a, b) -> int:
+    """m * k * n of one product a @ b: its size, which the thresholds above compare."""
+    return a.shape[-2] * a.shape[-1] * b.shape[-1]
 
 
 def mv(a, x):
@@ -269,9 +270,8 @@ def _product(a, b):
 def _batched_product(axis_size, in_batched, a, b):
     if not any(in_batched):
         return _reduce_mm(a, b), False
-    if a.shape[-2] * a.shape[-1] * b.shape[-1] > SMALL_BATCHED_MATMUL:
-        product = jax.lax.platform_dependent(a, b, cpu=jnp.matmul, default=_rank_one_mm)
-        return product, True
+    if _multiply_adds(a, b) > SMALL_BATCHED_MATMUL:
+        return jax.lax.platform_dependent(a, b, cpu=jnp.matmul, default=_rank_one_mm), True
     return _rank_one_mm(a, b), True
 
 
