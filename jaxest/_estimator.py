@@ -66,6 +66,9 @@ class AbstractEstimator(eqx.Module):
     needs_key: ClassVar[bool] = False
     #: the output fields saved when the caller does not choose (``None``: all of them)
     default_fields: ClassVar[tuple[str, ...] | None] = None
+    #: whether a sequential :func:`jaxest.run` recomputes each step in the reverse pass when the
+    #: caller does not choose (its ``checkpoint=None``): the estimator's measured better default
+    checkpoint_by_default: ClassVar[bool] = False
 
     @abc.abstractmethod
     def init(self, model, prior):

@@ -109,7 +109,7 @@ def run(
     k0: int = 0,
     save: SaveAt | None = None,
     parallel: bool | None = None,
-    checkpoint: bool = False,
+    checkpoint: bool | None = None,
     throw: bool = False,
 ):
     """Run ``estimator`` over the measurements ``ys`` (leading axis = time; NaN = missing).
@@ -129,11 +129,15 @@ def run(
             associative estimators, the default for them.
         checkpoint: reverse-mode differentiation recomputes each step from its carried state
             (``jax.checkpoint`` on the scanned step) instead of storing the step's
-            intermediates: per step it keeps the carried state (beside what ``save`` keeps),
-            and on small models the gradient is faster (the Duffing EKF's ``value_and_grad``
-            8.6 against 3.7 us per step, 200 runs under ``vmap`` 0.57 against 0.35), but not
-            everywhere (the 23-state flight EKF on one sequence 47 against 57 ms;
-            docs/performance.md). Sequential runs only. Values and gradients are unchanged.
+            intermediates: per step it keeps the carried state (beside what ``save`` keeps).
+            Values and gradients agree to rounding either way (but see SVD factors below); the
+            speed does not (docs/performance.md). ``None``: the estimator's
+            ``checkpoint_by_default``, True for the Gaussian filters that hold P as a
+            covariance or information matrix (their gradients get faster on small models and
+            under ``vmap``), False for the others (the set-membership filter's batched gradient
+            gets slower). Sequential runs only. ``True`` with a filter holding P as an SVD
+            factor can give a wrong gradient where singular values repeat (e.g. P0 = c I): a
+            recomputed step may pick other singular vectors than the stored forward pass.
         throw: raise (``eqx.error_if``) if any step's status is not OK, with what to do.
 
     Arguments are checked before anything is traced: bad input raises ``ValueError`` naming the
@@ -159,12 +163,14 @@ def run(
         raise ValueError(f"parallel: {type(estimator).__name__} is not associative")
     if parallel and state is not None:
         raise ValueError("parallel: resuming from a state is sequential; pass parallel=False")
-    if not isinstance(checkpoint, bool):
-        raise ValueError(f"checkpoint: expected True or False, got {checkpoint!r}")
+    if checkpoint is not None and not isinstance(checkpoint, bool):
+        raise ValueError(f"checkpoint: expected True, False or None, got {checkpoint!r}")
     if checkpoint and parallel:
         raise ValueError(
             "checkpoint: recomputes the steps of a sequential run; pass parallel=False with it"
         )
+    if checkpoint is None:
+        checkpoint = estimator.checkpoint_by_default and not parallel
     if estimator.needs_key and key is None:
         raise ValueError(f"key: {type(estimator).__name__} samples; pass key=jax.random.key(...)")
     if state is None:

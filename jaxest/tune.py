@@ -146,7 +146,7 @@ def _value_and_grad(objective, opt_state):
     return optax.value_and_grad_from_state(objective)
 
 
-def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool, field: str):
+def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool | None, field: str):
     """``model -> result.<field>`` of :func:`~jaxest.run` on every run of the batch ``ys``
     (runs, T, m) under one ``vmap``: what the losses below are made of."""
 
@@ -162,18 +162,18 @@ def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool, fie
     return values
 
 
-def neg_loglik(estimator, ys, *, prior, inputs=None, checkpoint: bool = False) -> Callable:
+def neg_loglik(estimator, ys, *, prior, inputs=None, checkpoint: bool | None = None) -> Callable:
     """Loss: minus the mean log-likelihood per run and step of a batch ``ys`` (runs, T, m).
 
     Only the log-likelihood is kept of each run (``SaveAt(fields=())``): no per-step arrays.
-    ``checkpoint``: as :func:`~jaxest.run`'s (the gradient recomputes the steps).
+    ``checkpoint``: as :func:`~jaxest.run`'s (``None``: the estimator's default).
     """
     logliks = _over_runs(estimator, ys, inputs, prior, SaveAt(fields=()), checkpoint, "loglik")
     return lambda model: -jnp.mean(logliks(model)) / ys.shape[1]
 
 
 def supervised_mse(
-    estimator, ys, states, *, prior, inputs=None, checkpoint: bool = False
+    estimator, ys, states, *, prior, inputs=None, checkpoint: bool | None = None
 ) -> Callable:
     """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n).
     ``checkpoint``: as :func:`~jaxest.run`'s."""

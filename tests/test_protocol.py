@@ -275,9 +275,48 @@ def test_checkpoint_stores_less_and_changes_no_value_or_gradient(dtype, rtol):
     assert temp[True] < temp[False] / 4
 
 
+def _gradient_temp_bytes(estimator, model, ys, prior, checkpoint) -> int:
+    """Temporary memory of the compiled gradient of ``run``'s log-likelihood (or, for an
+    estimator without one, its means' sum) with respect to the model's Q."""
+
+    def loss(Q):
+        result = je.run(
+            estimator, eqx.tree_at(lambda m: m.Q, model, Q), ys, prior=prior,
+            checkpoint=checkpoint,
+        )  # fmt: skip
+        return result.loglik if hasattr(result, "loglik") else result.mean.sum()
+
+    grad = jax.jit(jax.grad(loss))
+    return grad.lower(model.Q).compile().memory_analysis().temp_size_in_bytes
+
+
+def test_checkpoint_defaults_to_the_estimators_choice():
+    """``checkpoint=None`` (the default) is the estimator's ``checkpoint_by_default``: a Gaussian
+    filter's compiled gradient stores what ``checkpoint=True`` stores, the alpha-beta tracker's
+    what ``checkpoint=False`` stores; an associative estimator runs in parallel without
+    complaint."""
+    model = constant_velocity()
+    ys = je.simulate(model, PRIOR, 400, jax.random.PRNGKey(3)).y
+    for estimator, default in ((je.EKF(), True), (AlphaBetaTracker(), False)):
+        assert estimator.checkpoint_by_default is default
+        temp = {
+            ck: _gradient_temp_bytes(estimator, model, ys, PRIOR, ck) for ck in (None, True, False)
+        }
+        assert temp[True] < temp[False]  # the two settings compile differently here
+        assert temp[None] == temp[default]
+    # P held as a square-root or SVD factor: not unique, so not recomputed (the property's
+    # docstring says why)
+    assert je.UKF().checkpoint_by_default and je.IteratedEKF().checkpoint_by_default
+    for factored in (je.UKF(form="sqrt"), je.UKF(form="svd"), je.SVDEKF(), je.SquareRootKF()):
+        assert not factored.checkpoint_by_default
+    parallel = je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR)
+    sequential = je.run(je.KalmanFilter(), model, ys, prior=PRIOR)
+    np.testing.assert_allclose(parallel.loglik, sequential.loglik, rtol=1e-9)
+
+
 def test_checkpoint_is_checked_before_tracing():
     model, ys = linear_problem()
-    with pytest.raises(ValueError, match="^checkpoint: expected True or False"):
+    with pytest.raises(ValueError, match="^checkpoint: expected True, False or None"):
         je.run(je.KalmanFilter(), model, ys, prior=PRIOR, checkpoint="yes")
     with pytest.raises(ValueError, match="^checkpoint: .*parallel=False"):
         je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR, checkpoint=True)
