@@ -132,12 +132,11 @@ def run(
             intermediates: per step it keeps the carried state (beside what ``save`` keeps).
             Values and gradients agree to rounding either way (but see SVD factors below); the
             speed does not (docs/performance.md). ``None``: the estimator's
-            ``checkpoint_by_default``, True for the Gaussian filters that hold P as a
-            covariance or information matrix (their gradients get faster on small models and
-            under ``vmap``), False for the others (the set-membership filter's batched gradient
-            gets slower). Sequential runs only. ``True`` with a filter holding P as an SVD
-            factor can give a wrong gradient where singular values repeat (e.g. P0 = c I): a
-            recomputed step may pick other singular vectors than the stored forward pass.
+            ``checkpoint_by_default`` (recompute for the Gaussian filters that hold P as a
+            covariance or information matrix, store for the others; that property says why).
+            Sequential runs only. ``True`` with a filter holding P as an SVD factor can give a
+            wrong gradient where singular values repeat (e.g. P0 = c I): a recomputed step may
+            pick other singular vectors than the stored forward pass.
         throw: raise (``eqx.error_if``) if any step's status is not OK, with what to do.
 
     Arguments are checked before anything is traced: bad input raises ``ValueError`` naming the

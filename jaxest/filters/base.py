@@ -146,7 +146,6 @@ class AbstractGaussianFilter(AbstractEstimator):
     """A Gaussian filter: ``factor_type`` says how P is held, ``update_predict`` is the step.
 
     ``needs_positive_definite_Q``: the filter factors or inverts Q (checked before tracing).
-
     """
 
     factor_type: ClassVar[type[AbstractCovarianceFactor]]
