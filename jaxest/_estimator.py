@@ -85,6 +85,12 @@ class AbstractEstimator(eqx.Module):
     def check(self, model, ys, inputs, prior) -> None:
         """Raise ``ValueError`` naming the argument for malformed arguments (default: none)."""
 
+    def derivative_fields(self, model) -> tuple[str, ...]:
+        """The output fields :meth:`with_derivatives` needs of a run on ``model`` from a prior:
+        :func:`jaxest.run` stacks them whatever the caller saves and drops those the caller did
+        not ask for once the derivatives are attached (default: none)."""
+        return ()
+
     def with_derivatives(self, result, model, prior, ys, inputs, ks):
         """``result`` of a run from ``prior`` over ``ys`` (time indices ``ks``) with the
         estimator's own derivative rules attached to its outputs, where it has any (the Kalman

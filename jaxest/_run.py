@@ -60,10 +60,13 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
     T = ys.shape[0]
     ks = k0 + jnp.arange(T)
     fields = estimator.default_fields if save.fields is None else save.fields
+    # what the estimator's derivative rules need beside the caller's fields, dropped after
+    extra = () if state is not None or fields is None else estimator.derivative_fields(model)
+    extra = tuple(f for f in extra if f not in fields)
 
     def keep(output):
         saved = None if save.fn is None else save.fn(output)
-        return _keep(output, fields), saved, output.status
+        return _keep(output, None if fields is None else fields + extra), saved, output.status
 
     if parallel:
         outputs, final = associative_outputs(estimator, model, prior, ks, ys, inputs)
@@ -88,6 +91,8 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
     result = estimator.result(outputs, final)
     if state is None:
         result = estimator.with_derivatives(result, model, prior, ys, inputs, ks)
+    if extra:
+        result = dataclasses.replace(result, **dict.fromkeys(extra))
     return eqx.tree_at(
         lambda r: (r.any_status, r.saved),
         result,

@@ -66,7 +66,7 @@ def assert_same_gradient(closed, auto, rtol):
 @pytest.mark.parametrize("time_varying", [False, True], ids=["time_invariant", "time_varying"])
 def test_equals_autodiff_for_every_parameter(time_varying):
     """F, H, Q, R, B, D, m0, P0, ys and inputs, with missing data, in float64 to rtol 1e-9; the
-    derivative that reruns the filter (nothing saved) gives the same."""
+    same when the caller saves nothing (run keeps the fields the rule needs)."""
     args = problem(time_varying)
     auto = grad_all(AUTODIFF, args)
     assert_same_gradient(grad_all(CLOSED_FORM, args), auto, 1e-9)
@@ -111,7 +111,7 @@ def test_central_differences_forward_mode_and_hessian():
 def test_vmap_and_float32():
     """Under jit and vmap over runs and Q scales, float64 and float32: the closed form equals
     autodiff (float32: to float32 accuracy, and the float64 value). In float64 nothing is saved,
-    as in je.neg_loglik: the derivative reruns the filter under vmap."""
+    as in je.neg_loglik."""
     model, prior, _, inputs = problem(False)
     keys = jax.random.split(jax.random.PRNGKey(4), 3)
     ys = jax.vmap(lambda k: je.simulate(model, prior, T, k, inputs=inputs).y)(keys)
@@ -135,6 +135,30 @@ def test_vmap_and_float32():
     np.testing.assert_allclose(g32, batched(AUTODIFF, jnp.float32)[1], rtol=1e-3, atol=1e-2)
     np.testing.assert_allclose(g32, g64, rtol=1e-3, atol=1e-2)
     np.testing.assert_allclose(v32, v64, rtol=1e-5)
+
+
+def _scans(jaxpr) -> int:
+    """How many ``scan`` equations ``jaxpr`` holds, nested ones included."""
+    count = 0
+    for eqn in jaxpr.eqns:
+        count += eqn.primitive.name == "scan"
+        for param in eqn.params.values():
+            for sub in param if isinstance(param, tuple | list) else (param,):
+                if isinstance(sub, jax.extend.core.ClosedJaxpr | jax.extend.core.Jaxpr):
+                    count += _scans(getattr(sub, "jaxpr", sub))
+    return count
+
+
+def test_saving_nothing_runs_the_filter_once():
+    """With ``SaveAt(fields=())`` (as ``neg_loglik`` runs it) the result holds no per-step
+    arrays, and the gradient runs two scans, the filter's and the smoother's: ``run`` keeps
+    the fields the rule needs instead of the rule running the filter again."""
+    model, prior, ys, inputs = problem(False)
+    nothing = je.SaveAt(fields=())
+    result = je.run(CLOSED_FORM, model, ys, prior=prior, inputs=inputs, save=nothing)
+    assert all(getattr(result, f) is None for f in ("mean", "cov", "predicted_cov", "status"))
+    jaxpr = jax.make_jaxpr(jax.grad(loglik(CLOSED_FORM, nothing)))(model, prior, ys, inputs)
+    assert _scans(jaxpr.jaxpr) == 2
 
 
 def test_other_outputs_keep_autodiff():

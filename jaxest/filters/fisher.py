@@ -57,11 +57,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxest._run import SaveAt, run
 from jaxest.filters.base import FilterResult
 from jaxest.filters.common import masked_measurement
 from jaxest.linalg import chol_inverse, cholesky, logdet_chol, mm, mv, symmetrize
-from jaxest.smoothers.rts import NEEDED, SmootherResult, rts_smooth
+from jaxest.smoothers.rts import SmootherResult, rts_smooth
 
 
 @jax.custom_jvp
@@ -126,25 +125,18 @@ def expected_complete_loglik(model, prior, ys, inputs, ks, mo: SmootherResult):
 
 
 @jax.custom_jvp
-def fisher_loglik(loglik, model, prior, ys, inputs, ks, filtered: FilterResult | None):
+def fisher_loglik(loglik, model, prior, ys, inputs, ks, filtered: FilterResult):
     """``loglik`` (the Kalman filter's log p(y) of ``model``, no G, from ``prior`` over ``ys``
     with time indices ``ks``), differentiated by eqs (1)-(4) (module docstring). ``filtered``:
-    that run's result if it holds the fields the smoother needs, else ``None`` (the derivative
-    then runs the filter again to get them)."""
+    that run's result with the fields the smoother needs (:func:`jaxest.run` keeps them for
+    this rule whatever the caller saves: ``KalmanFilter.derivative_fields``)."""
     return loglik
 
 
 @fisher_loglik.defjvp
 def _fisher_loglik_jvp(primals, tangents):
-    from jaxest.filters.kalman import KalmanFilter  # which differentiates through this module
-
     loglik, model, prior, ys, inputs, ks, filtered = primals
     _, d_model, d_prior, d_ys, d_inputs, _, _ = tangents
-    if filtered is None:
-        filtered = run(
-            KalmanFilter(closed_form_gradient=False), model, ys, prior=prior, inputs=inputs,
-            k0=ks[0], save=SaveAt(fields=NEEDED),
-        )  # fmt: skip
     moments = rts_smooth(model, filtered, inputs=inputs)
     _, tangent = jax.jvp(
         lambda *params: expected_complete_loglik(*params, ks, moments),

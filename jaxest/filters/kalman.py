@@ -60,14 +60,16 @@ class KalmanFilter(AbstractGaussianFilter):
         out = StepOutput(x, P, x_post, P_post, e, S, loglik, status)
         return x_next, Covariance(P_next), out
 
+    def _closed_form(self, model) -> bool:
+        return self.closed_form_gradient and isinstance(model, LinearGaussian) and model.G is None
+
+    def derivative_fields(self, model) -> tuple[str, ...]:
+        return NEEDED if self._closed_form(model) else ()
+
     def with_derivatives(self, result: FilterResult, model, prior, ys, inputs, ks):
-        if not (
-            self.closed_form_gradient and isinstance(model, LinearGaussian) and model.G is None
-        ):
+        if not self._closed_form(model):
             return result
-        needed = {name: getattr(result, name) for name in NEEDED}
-        saved = all(value is not None for value in needed.values())
-        filtered = FilterResult(result.final_state, **needed) if saved else None
+        filtered = FilterResult(result.final_state, **{f: getattr(result, f) for f in NEEDED})
         loglik = fisher_loglik(result.loglik, model, prior, ys, inputs, ks, filtered)
         return eqx.tree_at(lambda r: r.final_state.loglik, result, loglik)
 
