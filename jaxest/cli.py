@@ -1,10 +1,12 @@
-"""Command line: ``python -m jaxest reproduce {all,STUDY...} --out DIR``."""
+"""Command line: ``python -m jaxest reproduce {all,STUDY...} --out DIR [--jobs N]``."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -44,6 +46,15 @@ def _parser() -> argparse.ArgumentParser:
         action="store_true",
         help="adaptive study: the Boeing 747 matrices as printed in the scan, not the published ones",
     )
+    rep.add_argument(
+        "--jobs",
+        type=int,
+        default=1,
+        help="studies run at once, each in its own process (default: 1); the studies whose "
+        "tables report wall times (parallel, smf-fdi) run alone after the others",
+    )
+    # a worker of --jobs: write this study's index entry to FILE, leave announcements to the parent
+    rep.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
     return parser
 
 
@@ -54,9 +65,9 @@ def _describe(name: str) -> str:
         return f"(unavailable: {err})"
 
 
-def _seconds_by_study(index_path: Path, quick: bool) -> dict[str, float]:
+def _seconds_by_study(index_path: Path, quick: bool, jobs: int) -> dict[str, float]:
     """Each study's wall time in the last run into this folder (``index.json``), where it ran in
-    the same mode (``--quick`` or not); {} without a readable index."""
+    the same mode (``--quick`` or not, the same ``--jobs``); {} without a readable index."""
     try:
         index = json.loads(index_path.read_text())
     except (OSError, ValueError):
@@ -64,12 +75,57 @@ def _seconds_by_study(index_path: Path, quick: bool) -> dict[str, float]:
     return {
         name: entry["seconds"]
         for name, entry in index.items()
-        if isinstance(entry, dict) and entry.get("quick") == quick and "seconds" in entry
+        if isinstance(entry, dict)
+        and entry.get("quick") == quick
+        and entry.get("jobs", 1) == jobs
+        and "seconds" in entry
     }
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+def _timed(name: str) -> bool:
+    """Whether the study's tables report wall times (its module's ``TIMED``): with ``--jobs`` it
+    runs with no other study beside it, so that nothing else competes for the processor."""
+    return getattr(studies.load(name), "TIMED", False)
+
+
+def _start_order(names: list[str], seconds: dict[str, float]) -> list[str]:
+    """The order ``--jobs`` starts the studies in: the untimed ones first, longest first where
+    the last run timed them all (else as given), then the timed ones."""
+    untimed = [name for name in names if not _timed(name)]
+    if all(name in seconds for name in untimed):
+        untimed.sort(key=lambda name: -seconds[name])
+    return untimed + [name for name in names if _timed(name)]
+
+
+def _seconds_to_go(
+    running: dict[str, float], queued: list[str], seconds: dict[str, float], jobs: int
+) -> float | None:
+    """Seconds until the last study is done if each takes as long as in the last run
+    (``seconds``), or None where one has no time there. ``running``: study -> seconds it has
+    run; ``queued``: the studies still to start, in their order. Up to ``jobs`` untimed studies
+    run at once, each starting in the first free slot; the timed ones run alone, after them."""
+    if any(name not in seconds for name in [*running, *queued]):
+        return None
+    left = {name: max(seconds[name] - ran, 0.0) for name, ran in running.items()}
+    slots = sorted(t for name, t in left.items() if not _timed(name))
+    slots += [0.0] * (jobs - len(slots))
+    alone = sum(t for name, t in left.items() if _timed(name))
+    for name in queued:
+        if _timed(name):
+            alone += seconds[name]
+        else:
+            slots[slots.index(min(slots))] += seconds[name]
+    return max(slots) + alone
+
+
+def _to_go(seconds_left: float | None) -> str:
+    if seconds_left is None:
+        return ""
+    return f" (about {seconds_left:.0f} s to go, by the last run's times)"
+
+
+def _run_here(names: list[str], args, seconds: dict[str, float]) -> dict[str, dict]:
+    """Run the studies one after the other in this process; their index entries."""
     # Before the first computation, which is when XLA reads its flags: the studies compile about
     # as much as they run, and this flag halves compiling without slowing what runs
     # (jaxest.xla_flags has the measurements).
@@ -78,23 +134,13 @@ def main(argv: list[str] | None = None) -> int:
 
     jax.config.update("jax_enable_x64", True)  # studies run in float64 unless they say otherwise
     compile_cache.enable()  # where JAXEST_COMPILATION_CACHE=1 asks for it
-    names = list(studies.STUDIES) if "all" in args.study else args.study
-    if args.runs is not None and args.runs < 1:
-        raise SystemExit("--runs: must be at least 1")
-    args.out.mkdir(parents=True, exist_ok=True)
-    last_run = _seconds_by_study(args.out / "index.json", args.quick)
     index = {}
     for i, name in enumerate(names):
         start = time.perf_counter()
-        to_go = [last_run.get(n) for n in names[i:]]
-        estimate = (
-            f" (about {sum(to_go):.0f} s to go, by the last run's times)"
-            if None not in to_go
-            else ""
-        )
-        print(f"== [{i + 1}/{len(names)}] {name}: {_describe(name)}{estimate}", file=sys.stderr)
-        module = studies.load(name)
-        module.run(
+        if args.worker is None:
+            to_go = _to_go(_seconds_to_go({}, names[i:], seconds, jobs=1))
+            print(f"== [{i + 1}/{len(names)}] {name}: {_describe(name)}{to_go}", file=sys.stderr)
+        studies.load(name).run(
             args.out,
             runs=args.runs,
             seed=args.seed,
@@ -109,10 +155,112 @@ def main(argv: list[str] | None = None) -> int:
             "seconds": round(time.perf_counter() - start, 2),
             "dir": str(args.out / name),
             "quick": args.quick,
+            "jobs": args.jobs,
             "xla_flags": xla_flags.current(),
         }
-        print(
-            f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}", file=sys.stderr
-        )
-    write_json(args.out / "index.json", index)
+        if args.worker is None:
+            print(f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}",
+                  file=sys.stderr)  # fmt: skip
+    return index
+
+
+def _worker_command(name: str, args, entry_file: Path) -> list[str]:
+    """The command that runs study ``name`` in a process of its own, with the options given."""
+    command = [sys.executable, "-m", "jaxest", "reproduce", name, "--out", str(args.out),
+               "--seed", str(args.seed), "--jobs", str(args.jobs), "--worker", str(entry_file)]  # fmt: skip
+    if args.runs is not None:
+        command += ["--runs", str(args.runs)]
+    if args.quick:
+        command.append("--quick")
+    if args.data is not None:
+        command += ["--data", str(args.data)]
+    if args.b747_printed:
+        command.append("--b747-printed")
+    return command
+
+
+def _run_in_processes(names: list[str], args, seconds: dict[str, float]) -> dict[str, dict]:
+    """Run the studies ``args.jobs`` at a time, each in a process of its own, the timed ones
+    alone after the others; relays each process's progress lines, labelled with its study.
+    After a study fails no other starts; returns the finished studies' index entries."""
+    queued = _start_order(names, seconds)
+    running: dict[str, tuple[subprocess.Popen, float, threading.Thread, Path]] = {}
+    index: dict[str, dict] = {}
+    failed: list[str] = []
+    lock = threading.Lock()
+
+    def say(text: str) -> None:
+        with lock:
+            print(text, file=sys.stderr, flush=True)
+
+    def relay(name: str, stream) -> None:
+        for line in stream:
+            line = line.rstrip("\n")
+            say(line if line.startswith(f"[{name}]") else f"[{name}] {line}")
+
+    def may_start(name: str) -> bool:
+        if _timed(name):
+            return not running
+        return len(running) < args.jobs and not any(_timed(other) for other in running)
+
+    def ran_for() -> dict[str, float]:
+        now = time.perf_counter()
+        return {other: now - started for other, (_, started, _, _) in running.items()}
+
+    try:
+        while queued or running:
+            while queued and not failed and may_start(queued[0]):
+                name = queued.pop(0)
+                entry_file = args.out / f".index-{name}.json"
+                process = subprocess.Popen(
+                    _worker_command(name, args, entry_file), stderr=subprocess.PIPE, text=True
+                )
+                thread = threading.Thread(target=relay, args=(name, process.stderr), daemon=True)
+                thread.start()
+                beside = f"; beside {', '.join(running)}" if running else ""
+                running[name] = (process, time.perf_counter(), thread, entry_file)
+                to_go = _to_go(_seconds_to_go(ran_for(), queued, seconds, args.jobs))
+                say(f"== [{len(names) - len(queued)}/{len(names)}] {name}: {_describe(name)}"
+                    f"{beside}{to_go}")  # fmt: skip
+            if not running:
+                break
+            time.sleep(0.2)
+            for name, (process, _, thread, entry_file) in list(running.items()):
+                if process.poll() is None:
+                    continue
+                thread.join()
+                del running[name]
+                if process.returncode != 0:
+                    failed.append(name)
+                    say(f"== {name}: failed (exit code {process.returncode}); its output is above")
+                    continue
+                index[name] = json.loads(entry_file.read_text())[name]
+                entry_file.unlink()
+                left = _seconds_to_go(ran_for(), queued, seconds, args.jobs)
+                to_go = _to_go(left) if queued or running else ""
+                say(f"== {name}: done in {index[name]['seconds']} s -> {args.out / name}{to_go}")
+    finally:
+        for process, *_ in running.values():  # interrupted: stop the studies still running
+            process.terminate()
+            process.wait()
+    if failed:
+        write_json(args.out / "index.json", index)
+        raise SystemExit(f"reproduce: {', '.join(failed)} failed; see the output above")
+    return index
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    names = list(studies.STUDIES) if "all" in args.study else args.study
+    if args.runs is not None and args.runs < 1:
+        raise SystemExit("--runs: must be at least 1")
+    if args.jobs < 1:
+        raise SystemExit("--jobs: must be at least 1")
+    args.out.mkdir(parents=True, exist_ok=True)
+    seconds = _seconds_by_study(args.out / "index.json", args.quick, args.jobs)
+    if args.jobs > 1 and args.worker is None:
+        index = _run_in_processes(names, args, seconds)
+    else:
+        index = _run_here(names, args, seconds)
+    write_json(args.worker or args.out / "index.json", index)
     return 0

@@ -29,16 +29,19 @@ def test_unknown_study_is_refused():
     assert done.returncode != 0 and "invalid choice" in done.stderr
 
 
-def test_filters_study_quick(tmp_path):
+def test_filters_study_quick_beside_another(tmp_path):
     # XLA flags of the user's own (here the suite's other one): the command keeps them and adds
     # the flag that compiles faster (jaxest.xla_flags), and the index records what ran
     env = {**os.environ, "XLA_FLAGS": " ".join(xla_flags.UNOPTIMISED_MACHINE_CODE)}
     done = subprocess.run(
-        [sys.executable, "-m", "jaxest", "reproduce", "filters", "--quick", "--out", str(tmp_path)],
+        [sys.executable, "-m", "jaxest", "reproduce", "wiener", "filters", "--quick", "--jobs", "2",
+         "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=900, env=env,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
-    assert "[filters]" in done.stderr  # the progress display
+    assert "[filters]" in done.stderr and "[wiener]" in done.stderr  # the progress display
+    assert "beside" in done.stderr  # the two ran at once
+    assert (tmp_path / "wiener" / "summary.json").stat().st_size > 0
     summary = json.loads((tmp_path / "filters" / "summary.json").read_text())
     at = {(r["filter"], r["dtype"], r["delta"]): r["rel_error"] for r in summary["robustness"]}
     assert at[("svd_ekf", "float64", 1e-9)] < 1e-5 and at[("svd_improved", "float64", 1e-9)] < 1e-5
@@ -50,8 +53,10 @@ def test_filters_study_quick(tmp_path):
     assert tuning["rmse"]["supervised"] < tuning["rmse"]["start"]
     for name in ("robustness.png", "tuning.png", "tables.md"):
         assert (tmp_path / "filters" / name).stat().st_size > 0
-    entry = json.loads((tmp_path / "index.json").read_text())["filters"]
-    assert entry["dir"].endswith("filters")
+    index = json.loads((tmp_path / "index.json").read_text())
+    assert sorted(index) == ["filters", "wiener"] and not list(tmp_path.glob(".index-*"))
+    entry = index["filters"]
+    assert entry["dir"].endswith("filters") and entry["jobs"] == 2 and entry["quick"]
     if jaxlib.__version__.startswith(xla_flags.MEASURED_JAXLIB):
         recorded = entry["xla_flags"].split()
         assert recorded == [*xla_flags.UNOPTIMISED_MACHINE_CODE, *xla_flags.FASTER_COMPILATION]
@@ -79,8 +84,88 @@ def test_reproduce_estimates_from_the_last_run_in_the_same_mode(tmp_path):
         "old": {"seconds": 3.0, "dir": "z"},  # written before the mode was recorded
     }
     (tmp_path / "index.json").write_text(json.dumps(index))
-    assert cli._seconds_by_study(tmp_path / "index.json", quick=True) == {"filters": 12.5}
-    assert cli._seconds_by_study(tmp_path / "index.json", quick=False) == {"wiener": 40.0}
-    assert cli._seconds_by_study(tmp_path / "missing.json", quick=True) == {}
+    assert cli._seconds_by_study(tmp_path / "index.json", quick=True, jobs=1) == {"filters": 12.5}
+    assert cli._seconds_by_study(tmp_path / "index.json", quick=False, jobs=1) == {"wiener": 40.0}
+    assert cli._seconds_by_study(tmp_path / "index.json", quick=False, jobs=2) == {}
+    assert cli._seconds_by_study(tmp_path / "missing.json", quick=True, jobs=1) == {}
     (tmp_path / "index.json").write_text("{not json")
-    assert cli._seconds_by_study(tmp_path / "index.json", quick=True) == {}
+    assert cli._seconds_by_study(tmp_path / "index.json", quick=True, jobs=1) == {}
+
+
+def test_jobs_start_the_longest_first_and_the_timed_studies_alone_at_the_end():
+    seconds = {"svd-ekf": 250.0, "sigma-point": 100.0, "network": 50.0, "filters": 30.0,
+               "parallel": 140.0, "smf-fdi": 17.0}  # fmt: skip
+    given = ["filters", "smf-fdi", "svd-ekf", "parallel", "network", "sigma-point"]
+    order = cli._start_order(given, seconds)
+    assert order == ["svd-ekf", "sigma-point", "network", "filters", "smf-fdi", "parallel"]
+    # without a time for every untimed study: as given, the timed ones last
+    assert cli._start_order(given, {}) == [
+        "filters", "svd-ekf", "network", "sigma-point", "smf-fdi", "parallel"]  # fmt: skip
+    # two at a time: svd-ekf | sigma-point, network, filters (180 s); then 17 + 140 s alone
+    assert cli._seconds_to_go({}, order, seconds, jobs=2) == 250.0 + 157.0
+    assert cli._seconds_to_go({}, order, seconds, jobs=1) == sum(seconds.values())
+    # svd-ekf has run 200 of its 250 s; filters takes the free slot
+    assert cli._seconds_to_go({"svd-ekf": 200.0}, ["filters"], seconds, jobs=2) == 50.0
+    assert cli._seconds_to_go({"parallel": 100.0}, [], seconds, jobs=2) == 40.0
+    assert cli._seconds_to_go({}, ["wiener"], seconds, jobs=2) is None  # never timed
+
+
+def test_worker_command_forwards_every_option(tmp_path):
+    argv = ["reproduce", "svd-ekf", "--out", str(tmp_path), "--runs", "3", "--seed", "7",
+            "--quick", "--data", str(tmp_path / "flight"), "--b747-printed", "--jobs", "2"]  # fmt: skip
+    args = cli._parser().parse_args(argv)
+    command = cli._worker_command("svd-ekf", args, tmp_path / "entry.json")
+    assert command[:3] == [sys.executable, "-m", "jaxest"]
+    worker = cli._parser().parse_args(command[3:])
+    assert worker.worker == tmp_path / "entry.json"
+    assert {**vars(worker), "worker": None} == vars(args)
+
+
+def test_after_a_failed_study_no_other_starts(tmp_path, monkeypatch, capsys):
+    # stand-ins for the study processes: wiener fails, filters finishes half a second after it,
+    # network would leave a mark
+    failing = tmp_path / "wiener.failing"
+    scripts = {
+        "wiener": f"import sys; print('boom', file=sys.stderr); open({str(failing)!r}, 'w');"
+        " sys.exit(3)",
+        "filters": f"import json, os, sys, time\nwhile not os.path.exists({str(failing)!r}):"
+        " time.sleep(0.05)\ntime.sleep(0.5)\n"
+        "open(sys.argv[1], 'w').write(json.dumps({'filters': {'seconds': 1.0}}))",
+        "network": "import sys; open(sys.argv[1] + '.started', 'w')",
+    }
+    monkeypatch.setattr(
+        cli, "_worker_command",
+        lambda name, args, entry: [sys.executable, "-c", scripts[name], str(entry)],
+    )  # fmt: skip
+    args = cli._parser().parse_args(
+        ["reproduce", "wiener", "filters", "network", "--jobs", "2", "--out", str(tmp_path)]
+    )
+    try:
+        cli._run_in_processes(args.study, args, {})
+    except SystemExit as stop:
+        assert "wiener failed" in str(stop)
+    else:
+        raise AssertionError("a failed study must end the command with an error")
+    err = capsys.readouterr().err
+    assert "[wiener] boom" in err and "wiener: failed (exit code 3)" in err
+    assert json.loads((tmp_path / "index.json").read_text()) == {"filters": {"seconds": 1.0}}
+    assert not list(tmp_path.glob("*.started"))
+
+
+def test_the_timed_studies_run_alone(tmp_path, monkeypatch):
+    # stand-ins for the study processes, each noting when it ran
+    script = (
+        "import json, sys, time\nname, entry = sys.argv[1:]\nstart = time.time()\n"
+        "time.sleep(0.5)\nopen(entry, 'w').write(json.dumps("
+        "{name: {'seconds': 0.5, 'ran': [start, time.time()]}}))"
+    )
+    monkeypatch.setattr(
+        cli, "_worker_command",
+        lambda name, args, entry: [sys.executable, "-c", script, name, str(entry)],
+    )  # fmt: skip
+    names = ["smf-fdi", "wiener", "parallel", "filters"]
+    args = cli._parser().parse_args(["reproduce", *names, "--jobs", "2", "--out", str(tmp_path)])
+    ran = {name: entry["ran"] for name, entry in cli._run_in_processes(names, args, {}).items()}
+    overlap = lambda a, b: ran[a][0] < ran[b][1] and ran[b][0] < ran[a][1]
+    assert overlap("wiener", "filters")
+    assert not any(overlap(a, b) for a in ("smf-fdi", "parallel") for b in names if b != a)

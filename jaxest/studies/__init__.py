@@ -3,7 +3,9 @@
 Each module defines ``DESCRIPTION`` (one line) and
 ``run(out: pathlib.Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict``,
 which writes its figures (PNG) and tables (Markdown + JSON) under ``out / NAME`` and returns the
-summary it wrote. ``runs=None`` means the study's default number of Monte Carlo runs.
+summary it wrote. ``runs=None`` means the study's default number of Monte Carlo runs. A study
+whose tables report wall times sets ``TIMED = True``: ``reproduce --jobs N`` runs it with no other
+study beside it.
 """
 
 from __future__ import annotations

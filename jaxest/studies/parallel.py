@@ -37,6 +37,8 @@ from jaxest.progress import Progress
 from jaxest.report import device_name, markdown_table, timed, write_json
 
 DESCRIPTION = "parallel-in-time Kalman filter/smoother speed and accuracy; EM vs gradient fitting"
+#: its tables report wall times (the speed grid, EM against gradient fitting)
+TIMED = True
 
 METHODS = {
     "sequential": (je.KalmanFilter(), False),
