@@ -30,6 +30,10 @@ import jaxlib
 MEASURED_JAXLIB = "0.10."
 FASTER_COMPILATION = ("--xla_cpu_use_fusion_emitters=false",)
 UNOPTIMISED_MACHINE_CODE = ("--xla_backend_optimization_level=0",)
+#: ``jax.jit(f, compiler_options=OPTIMISED_MACHINE_CODE)`` undoes :data:`UNOPTIMISED_MACHINE_CODE`
+#: for one program, where it runs far longer than it compiles (in the test suite: the particle
+#: filter's stochastic-gradient fit, first call 11.1 s at level 0, 2.6 s at level 2).
+OPTIMISED_MACHINE_CODE = {"xla_backend_optimization_level": 2}
 
 
 def add(flags: tuple[str, ...]) -> tuple[str, ...]:

@@ -2,6 +2,8 @@
 against the Kalman filter, the gradient estimate against the Kalman filter's exact derivative,
 a fit of R, a user proposal, missing data, degenerate weights, bad input, jit/vmap/grad."""
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +12,7 @@ import pytest
 from jax import export
 
 import jaxest as je
+from jaxest import xla_flags
 from jaxest.filters.particle import (
     AbstractProposal,
     GaussianTransition,
@@ -212,7 +215,7 @@ def test_fit_recovers_R_within_its_standard_error():
 
     pf, optimizer, steps = je.ParticleFilter(1000, "multinomial", 1.0), optax.adam(0.05), 100
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=xla_flags.OPTIMISED_MACHINE_CODE)
     def sgd(log_r, key):
         def body(carry, key):
             log_r, opt_state = carry
