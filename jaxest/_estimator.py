@@ -24,6 +24,7 @@ pieces, so the sequential and parallel paths share one implementation.
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -69,6 +70,9 @@ class AbstractEstimator(eqx.Module):
     #: whether a sequential :func:`jaxest.run` recomputes each step in the reverse pass when the
     #: caller does not choose (its ``checkpoint=None``): the estimator's measured better default
     checkpoint_by_default: ClassVar[bool] = False
+    #: what a recomputed step keeps from the forward pass (a ``jax.checkpoint`` policy; None:
+    #: nothing, every value is recomputed)
+    checkpoint_policy: ClassVar[Callable | None] = None
 
     @abc.abstractmethod
     def init(self, model, prior):

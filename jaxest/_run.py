@@ -84,7 +84,7 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
             return (state, any_status | status), (kept, saved)
 
         (final, any_status), (outputs, saved) = jax.lax.scan(
-            jax.checkpoint(body) if checkpoint else body,
+            jax.checkpoint(body, policy=estimator.checkpoint_policy) if checkpoint else body,
             (first, jnp.zeros((), jnp.int32)),
             (ks, ys, inputs, keys),
         )
@@ -134,14 +134,13 @@ def run(
             associative estimators, the default for them.
         checkpoint: reverse-mode differentiation recomputes each step from its carried state
             (``jax.checkpoint`` on the scanned step) instead of storing the step's
-            intermediates: per step it keeps the carried state (beside what ``save`` keeps).
-            Values and gradients agree to rounding either way (but see SVD factors below); the
-            speed does not (docs/performance.md). ``None``: the estimator's
-            ``checkpoint_by_default`` (recompute for the Gaussian filters that hold P as a
-            covariance or information matrix, store for the others; that property says why).
-            Sequential runs only. ``True`` with a filter holding P as an SVD factor can give a
-            wrong gradient where singular values repeat (e.g. P0 = c I): a recomputed step may
-            pick other singular vectors than the stored forward pass.
+            intermediates: per step it keeps the carried state (beside what ``save`` keeps)
+            and what the estimator's ``checkpoint_policy`` names (the SVD filters' factors).
+            Values and gradients agree to rounding either way; the speed does not
+            (docs/performance.md). ``None``: the estimator's ``checkpoint_by_default``
+            (recompute for the Gaussian filters that hold P as a covariance, information matrix
+            or SVD factors, store for the others; that property says why). Sequential runs
+            only.
         throw: raise (``eqx.error_if``) if any step's status is not OK, with what to do.
 
     Arguments are checked before anything is traced: bad input raises ``ValueError`` naming the

@@ -30,6 +30,7 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jax.ad_checkpoint import checkpoint_name
 from jax.custom_derivatives import SymbolicZero
 
 
@@ -81,6 +82,18 @@ def cov_tangent_to_factor(U, D, dP):
     return 0.5 * dP @ (U / D**2), jnp.zeros_like(D)
 
 
+#: the name (``jax.ad_checkpoint.checkpoint_name``) of the SVD and eigen factors that the
+#: covariance-level derivative rules read. A step recomputed in the reverse pass keeps them from
+#: the forward pass (``AbstractGaussianFilter.checkpoint_policy``): factors are not unique where
+#: singular values repeat, and a recomputed factor can differ from the one the next step was given.
+FACTORS = "svd_factors"
+
+
+def keep_factors(*factors):
+    """``factors``, named :data:`FACTORS` for a recomputing reverse pass to keep."""
+    return checkpoint_name(factors, FACTORS)
+
+
 @jax.custom_jvp
 def factor_psd(P):
     """U, D with P = U diag(D)^2 U^T (U orthogonal, D >= 0 descending) by a symmetric SVD.
@@ -95,7 +108,7 @@ def factor_psd(P):
 @factor_psd.defjvp
 def _factor_psd_jvp(primals, tangents):
     (P,), (dP,) = primals, tangents
-    U, D = factor_psd(P)
+    U, D = keep_factors(*factor_psd(P))
     return (U, D), cov_tangent_to_factor(U, D, symmetrize(dP))
 
 

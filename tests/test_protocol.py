@@ -291,24 +291,27 @@ def _gradient_temp_bytes(estimator, model, ys, prior, checkpoint) -> int:
 
 
 def test_checkpoint_defaults_to_the_estimators_choice():
-    """``checkpoint=None`` (the default) is the estimator's ``checkpoint_by_default``: a Gaussian
-    filter's compiled gradient stores what ``checkpoint=True`` stores, the alpha-beta tracker's
-    what ``checkpoint=False`` stores; an associative estimator runs in parallel without
-    complaint."""
+    """``checkpoint=None`` (the default) is the estimator's ``checkpoint_by_default``: the EKF's
+    and the SVD-EKF's compiled gradients store what ``checkpoint=True`` stores, the alpha-beta
+    tracker's what ``checkpoint=False`` stores; an associative estimator runs in parallel
+    without complaint."""
     model = constant_velocity()
     ys = je.simulate(model, PRIOR, 400, jax.random.PRNGKey(3)).y
-    for estimator, default in ((je.EKF(), True), (AlphaBetaTracker(), False)):
+    for estimator, default in ((je.EKF(), True), (je.SVDEKF(), True), (AlphaBetaTracker(), False)):
         assert estimator.checkpoint_by_default is default
         temp = {
             ck: _gradient_temp_bytes(estimator, model, ys, PRIOR, ck) for ck in (None, True, False)
         }
         assert temp[True] < temp[False]  # the two settings compile differently here
         assert temp[None] == temp[default]
-    # P held as a square-root or SVD factor: not unique, so not recomputed (the property's
-    # docstring says why)
     assert je.UKF().checkpoint_by_default and je.IteratedEKF().checkpoint_by_default
-    for factored in (je.UKF(form="sqrt"), je.UKF(form="svd"), je.SVDEKF(), je.SquareRootKF()):
-        assert not factored.checkpoint_by_default
+    assert je.EKF().checkpoint_policy is None  # recomputes everything
+    # P held as SVD factors: recomputed, keeping the factors of the forward pass (they are not
+    # unique; the property's docstring says why)
+    for svd_form in (je.UKF(form="svd"), je.SVDEKF(), je.ImprovedSVDKF()):
+        assert svd_form.checkpoint_by_default and svd_form.checkpoint_policy is not None
+    for square_root in (je.UKF(form="sqrt"), je.SquareRootKF()):  # measured no faster
+        assert not square_root.checkpoint_by_default
     parallel = je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR)
     sequential = je.run(je.KalmanFilter(), model, ys, prior=PRIOR)
     np.testing.assert_allclose(parallel.loglik, sequential.loglik, rtol=1e-9)

@@ -13,12 +13,13 @@ import abc
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_gaussian_arguments, check_gaussian_prior
 from jaxest._estimator import AbstractEstimator, AbstractResult
-from jaxest.linalg import chol_inverse, cholesky, cov_from_factor, factor_psd, inv_spd
+from jaxest.linalg import FACTORS, chol_inverse, cholesky, cov_from_factor, factor_psd, inv_spd
 
 
 class AbstractCovarianceFactor(eqx.Module):
@@ -160,19 +161,33 @@ class AbstractGaussianFilter(AbstractEstimator):
     @property
     def checkpoint_by_default(self) -> bool:
         """Whether gradients through :func:`jaxest.run` recompute each step in the reverse pass
-        by default: where P is held as itself (a covariance or information matrix).
+        by default: where P is held as itself (a covariance or information matrix) or as SVD
+        factors, not as a square-root (Cholesky or QR) factor.
 
         The reverse pass of a small filter is bound by how many arrays it stores and reads back
         per step, not by arithmetic. Measured on the Duffing map (2 states, T = 1000,
         value_and_grad, docs/performance.md): 1.4-2.8x faster on one sequence and 2-2.7x under
-        ``vmap`` for the EKFs and the UKF; the 23-state flight model's Kalman filter 8 % slower
-        on one sequence, 19 % faster over 10 runs under ``vmap``. Not where P is held as a
-        square-root or SVD factor: those are not unique (repeated singular values, rank
-        deficiency), a recomputed step can pick other factors than the stored forward pass, and
-        the derivative rules that map covariance tangents to factor tangents then disagree from
-        one step to the next (a UKF's SVD form with P0 = I: 1e-3 relative error in the
-        gradient, under the test suite's XLA flags)."""
-        return self.factor_type in (Covariance, InformationMatrix)
+        ``vmap`` for the EKFs and the UKF, 1.4-1.6x and 1.6-2.3x for the SVD filters; the
+        23-state flight model's Kalman filter 8 % slower on one sequence, 19 % faster over 10
+        runs under ``vmap``, its SVD filters 14-25 % and 11-12 % faster. The square-root forms
+        gained nothing measurable."""
+        return self.factor_type in (Covariance, InformationMatrix, SVDFactor)
+
+    @property
+    def checkpoint_policy(self):
+        """What a step recomputed in the reverse pass keeps from the forward pass: for SVD
+        factors, the factors themselves (:data:`jaxest.linalg.FACTORS`); else nothing.
+
+        SVD factors are not unique where singular values repeat (P0 = I, isotropic Q). A
+        recomputed step can round its way to other singular vectors than the forward pass gave
+        the next step, and the derivative rules, which map covariance tangents to factor
+        tangents through the factors, then disagree from one step to the next: recomputing
+        everything gave a UKF's SVD form with P0 = I a gradient 1e-3 off (relative), under the
+        test suite's XLA flags. Keeping the factors also skips their recomputation, which made
+        this faster than both storing everything and recomputing everything."""
+        if self.factor_type is SVDFactor:
+            return jax.checkpoint_policies.save_only_these_names(FACTORS)
+        return None
 
     @abc.abstractmethod
     def update_predict(self, model, x, factor, k, y, u) -> tuple:

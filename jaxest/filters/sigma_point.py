@@ -73,6 +73,7 @@ from jaxest.linalg import (
     cholesky,
     cov_from_factor,
     factor_psd,
+    keep_factors,
     right_svd,
     solve_triangular,
     symmetrize,
@@ -137,7 +138,7 @@ def eigen_factor(P):
 @eigen_factor.defjvp
 def _eigen_factor_jvp(primals, tangents):
     (P,), (dP,) = primals, tangents
-    U, D = eigen_factor(P)
+    U, D = keep_factors(*eigen_factor(P))
     return (U, D), eigen_tangent(U, D, symmetrize(dP))
 
 
@@ -160,7 +161,7 @@ def rows_factor(plus, minus):
 @rows_factor.defjvp
 def _rows_factor_jvp(primals, tangents):
     (plus, minus), (d_plus, d_minus) = primals, tangents
-    U, D = rows_factor(plus, minus)
+    U, D = keep_factors(*rows_factor(plus, minus))
     dP = plus.T @ d_plus - minus.T @ d_minus
     return (U, D), eigen_tangent(U, D, dP + dP.T)
 

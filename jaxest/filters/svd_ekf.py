@@ -34,6 +34,7 @@ from jaxest.linalg import (
     cov_tangent_to_factor,
     factor_psd,
     factor_tangent_to_cov,
+    keep_factors,
     logdet_chol,
     right_svd,
     solve_triangular,
@@ -111,14 +112,17 @@ def factored_step(model, x, U, D, y, u, k, *, primal):
 def _factored_step_jvp(primals, tangents, *, primal):
     model, x, U, D, y, u, k = primals
     t_model, t_x, t_U, t_D, t_y, t_u, _ = tangents
-    out = factored_step(model, x, U, D, y, u, k, primal=primal)
+    x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik) = factored_step(
+        model, x, U, D, y, u, k, primal=primal
+    )
+    U_next, D_next, U_post, D_post = keep_factors(U_next, D_next, U_post, D_post)
+    out = x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik)
     zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     dP = factor_tangent_to_cov(U, D, zeros(t_U, U), zeros(t_D, D))
     ref = lambda model, x, P, y, u: covariance_step(model, x, P, y, u, k)
     _, (dx_next, dP_next, d_outputs) = eqx.filter_jvp(
         ref, (model, x, cov_from_factor(U, D), y, u), (t_model, zeros(t_x, x), dP, t_y, t_u)
     )
-    x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik) = out
     dU_next, dD_next = cov_tangent_to_factor(U_next, D_next, symmetrize(dP_next))
     dx_post, dP_post, de, dS, dloglik = d_outputs
     dU_post, dD_post = cov_tangent_to_factor(U_post, D_post, symmetrize(dP_post))
