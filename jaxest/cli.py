@@ -51,7 +51,7 @@ def _parser() -> argparse.ArgumentParser:
         type=int,
         default=1,
         help="studies run at once, each in its own process (default: 1); the studies whose "
-        "tables report wall times (parallel, smf-fdi) run alone after the others",
+        "tables report wall times run alone after the others",
     )
     # a worker of --jobs: write this study's index entry to FILE, leave announcements to the parent
     rep.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
