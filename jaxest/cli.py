@@ -65,13 +65,18 @@ def _describe(name: str) -> str:
         return f"(unavailable: {err})"
 
 
-def _seconds_by_study(index_path: Path, quick: bool, jobs: int) -> dict[str, float]:
-    """Each study's wall time in the last run into this folder (``index.json``), where it ran in
-    the same mode (``--quick`` or not, the same ``--jobs``); {} without a readable index."""
+def _read_index(path: Path) -> dict[str, dict]:
+    """The entries of an output folder's ``index.json``; {} where it is missing or unreadable."""
     try:
-        index = json.loads(index_path.read_text())
+        index = json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
+    return index if isinstance(index, dict) else {}
+
+
+def _seconds_by_study(index: dict[str, dict], quick: bool, jobs: int) -> dict[str, float]:
+    """Each study's wall time in the last run into this folder (its ``index``), where it ran in
+    the same mode (``--quick`` or not, the same ``--jobs``)."""
     return {
         name: entry["seconds"]
         for name, entry in index.items()
@@ -179,10 +184,13 @@ def _worker_command(name: str, args, entry_file: Path) -> list[str]:
     return command
 
 
-def _run_in_processes(names: list[str], args, seconds: dict[str, float]) -> dict[str, dict]:
+def _run_in_processes(
+    names: list[str], args, seconds: dict[str, float]
+) -> tuple[dict[str, dict], list[str]]:
     """Run the studies ``args.jobs`` at a time, each in a process of its own, the timed ones
     alone after the others; relays each process's progress lines, labelled with its study.
-    After a study fails no other starts; returns the finished studies' index entries."""
+    After a study fails no other starts. Returns the finished studies' index entries and the
+    failed studies."""
     queued = _start_order(names, seconds)
     running: dict[str, tuple[subprocess.Popen, float, threading.Thread, Path]] = {}
     index: dict[str, dict] = {}
@@ -243,10 +251,7 @@ def _run_in_processes(names: list[str], args, seconds: dict[str, float]) -> dict
         for process, *_ in running.values():  # interrupted: stop the studies still running
             process.terminate()
             process.wait()
-    if failed:
-        write_json(args.out / "index.json", index)
-        raise SystemExit(f"reproduce: {', '.join(failed)} failed; see the output above")
-    return index
+    return index, failed
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -257,10 +262,19 @@ def main(argv: list[str] | None = None) -> int:
     if args.jobs < 1:
         raise SystemExit("--jobs: must be at least 1")
     args.out.mkdir(parents=True, exist_ok=True)
-    seconds = _seconds_by_study(args.out / "index.json", args.quick, args.jobs)
-    if args.jobs > 1 and args.worker is None:
-        index = _run_in_processes(names, args, seconds)
+    if args.worker is not None:  # one study for a parent that keeps the index
+        write_json(args.worker, _run_here(names, args, {}))
+        return 0
+    index_path = args.out / "index.json"
+    earlier = _read_index(index_path)
+    seconds = _seconds_by_study(earlier, args.quick, args.jobs)
+    if args.jobs > 1:
+        index, failed = _run_in_processes(names, args, seconds)
     else:
-        index = _run_here(names, args, seconds)
-    write_json(args.worker or args.out / "index.json", index)
+        index, failed = _run_here(names, args, seconds), []
+    # the folder's studies: this run's, and those of earlier runs that this one did not redo
+    kept = {name: entry for name, entry in earlier.items() if name not in failed}
+    write_json(index_path, {**kept, **index})
+    if failed:
+        raise SystemExit(f"reproduce: {', '.join(failed)} failed; see the output above")
     return 0

@@ -85,12 +85,13 @@ def test_reproduce_estimates_from_the_last_run_in_the_same_mode(tmp_path):
         "old": {"seconds": 3.0, "dir": "z"},  # written before the mode was recorded
     }
     (tmp_path / "index.json").write_text(json.dumps(index))
-    assert cli._seconds_by_study(tmp_path / "index.json", quick=True, jobs=1) == {"filters": 12.5}
-    assert cli._seconds_by_study(tmp_path / "index.json", quick=False, jobs=1) == {"wiener": 40.0}
-    assert cli._seconds_by_study(tmp_path / "index.json", quick=False, jobs=2) == {}
-    assert cli._seconds_by_study(tmp_path / "missing.json", quick=True, jobs=1) == {}
+    index = cli._read_index(tmp_path / "index.json")
+    assert cli._seconds_by_study(index, quick=True, jobs=1) == {"filters": 12.5}
+    assert cli._seconds_by_study(index, quick=False, jobs=1) == {"wiener": 40.0}
+    assert cli._seconds_by_study(index, quick=False, jobs=2) == {}
+    assert cli._read_index(tmp_path / "missing.json") == {}
     (tmp_path / "index.json").write_text("{not json")
-    assert cli._seconds_by_study(tmp_path / "index.json", quick=True, jobs=1) == {}
+    assert cli._read_index(tmp_path / "index.json") == {}
 
 
 def test_jobs_start_the_longest_first_and_the_timed_studies_alone_at_the_end():
@@ -124,7 +125,7 @@ def test_worker_command_forwards_every_option(tmp_path):
 
 def test_after_a_failed_study_no_other_starts(tmp_path, monkeypatch, capsys):
     # stand-ins for the study processes: wiener fails, filters finishes half a second after it,
-    # network would leave a mark
+    # network would leave a mark. The folder holds an earlier run's wiener, network and svd-ekf.
     failing = tmp_path / "wiener.failing"
     scripts = {
         "wiener": f"import sys; print('boom', file=sys.stderr); open({str(failing)!r}, 'w');"
@@ -138,15 +139,19 @@ def test_after_a_failed_study_no_other_starts(tmp_path, monkeypatch, capsys):
         cli, "_worker_command",
         lambda name, args, entry: [sys.executable, "-c", scripts[name], str(entry)],
     )  # fmt: skip
-    args = cli._parser().parse_args(
-        ["reproduce", "wiener", "filters", "network", "--jobs", "2", "--out", str(tmp_path)]
-    )
+    earlier = {name: {"seconds": 9.0} for name in ("wiener", "network", "svd-ekf")}
+    (tmp_path / "index.json").write_text(json.dumps(earlier))
     with pytest.raises(SystemExit, match="wiener failed"):
-        cli._run_in_processes(args.study, args, {})
+        cli.main(
+            ["reproduce", "wiener", "filters", "network", "--jobs", "2", "--out", str(tmp_path)]
+        )
     err = capsys.readouterr().err
     assert "[wiener] boom" in err and "wiener: failed (exit code 3)" in err
-    assert json.loads((tmp_path / "index.json").read_text()) == {"filters": {"seconds": 1.0}}
     assert not list(tmp_path.glob("*.started"))
+    # the index: the study that finished, and the earlier ones not redone; not the failed one
+    index = json.loads((tmp_path / "index.json").read_text())
+    assert index == {"filters": {"seconds": 1.0}, "network": {"seconds": 9.0},
+                     "svd-ekf": {"seconds": 9.0}}  # fmt: skip
 
 
 def test_the_timed_studies_run_alone(tmp_path, monkeypatch):
@@ -162,7 +167,9 @@ def test_the_timed_studies_run_alone(tmp_path, monkeypatch):
     )  # fmt: skip
     names = ["smf-fdi", "wiener", "parallel", "filters"]
     args = cli._parser().parse_args(["reproduce", *names, "--jobs", "2", "--out", str(tmp_path)])
-    ran = {name: entry["ran"] for name, entry in cli._run_in_processes(names, args, {}).items()}
+    index, failed = cli._run_in_processes(names, args, {})
+    assert not failed
+    ran = {name: entry["ran"] for name, entry in index.items()}
     overlap = lambda a, b: ran[a][0] < ran[b][1] and ran[b][0] < ran[a][1]
     assert overlap("wiener", "filters")
     assert not any(overlap(a, b) for a in ("smf-fdi", "parallel") for b in names if b != a)
