@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import sys
@@ -87,6 +88,7 @@ def _seconds_by_study(index: dict[str, dict], quick: bool, jobs: int) -> dict[st
     }
 
 
+@functools.cache
 def _timed(name: str) -> bool:
     """Whether the study's tables report wall times (its module's ``TIMED``): with ``--jobs`` it
     runs with no other study beside it, so that nothing else competes for the processor."""
@@ -184,6 +186,11 @@ def _worker_command(name: str, args, entry_file: Path) -> list[str]:
     return command
 
 
+def _entry_file(out: Path, name: str) -> Path:
+    """Where the worker running study ``name`` writes its index entry for the parent."""
+    return out / f".index-{name}.json"
+
+
 def _run_in_processes(
     names: list[str], args, seconds: dict[str, float]
 ) -> tuple[dict[str, dict], list[str]]:
@@ -192,7 +199,7 @@ def _run_in_processes(
     After a study fails no other starts. Returns the finished studies' index entries and the
     failed studies."""
     queued = _start_order(names, seconds)
-    running: dict[str, tuple[subprocess.Popen, float, threading.Thread, Path]] = {}
+    running: dict[str, tuple[subprocess.Popen, float, threading.Thread]] = {}
     index: dict[str, dict] = {}
     failed: list[str] = []
     lock = threading.Lock()
@@ -213,27 +220,28 @@ def _run_in_processes(
 
     def ran_for() -> dict[str, float]:
         now = time.perf_counter()
-        return {other: now - started for other, (_, started, _, _) in running.items()}
+        return {other: now - started for other, (_, started, _) in running.items()}
 
     try:
         while queued or running:
             while queued and not failed and may_start(queued[0]):
                 name = queued.pop(0)
-                entry_file = args.out / f".index-{name}.json"
                 process = subprocess.Popen(
-                    _worker_command(name, args, entry_file), stderr=subprocess.PIPE, text=True
+                    _worker_command(name, args, _entry_file(args.out, name)),
+                    stderr=subprocess.PIPE,
+                    text=True,
                 )
                 thread = threading.Thread(target=relay, args=(name, process.stderr), daemon=True)
                 thread.start()
                 beside = f"; beside {', '.join(running)}" if running else ""
-                running[name] = (process, time.perf_counter(), thread, entry_file)
+                running[name] = (process, time.perf_counter(), thread)
                 to_go = _to_go(_seconds_to_go(ran_for(), queued, seconds, args.jobs))
                 say(f"== [{len(names) - len(queued)}/{len(names)}] {name}: {_describe(name)}"
                     f"{beside}{to_go}")  # fmt: skip
             if not running:
                 break
             time.sleep(0.2)
-            for name, (process, _, thread, entry_file) in list(running.items()):
+            for name, (process, _, thread) in list(running.items()):
                 if process.poll() is None:
                     continue
                 thread.join()
@@ -242,6 +250,7 @@ def _run_in_processes(
                     failed.append(name)
                     say(f"== {name}: failed (exit code {process.returncode}); its output is above")
                     continue
+                entry_file = _entry_file(args.out, name)
                 index[name] = json.loads(entry_file.read_text())[name]
                 entry_file.unlink()
                 left = _seconds_to_go(ran_for(), queued, seconds, args.jobs)
