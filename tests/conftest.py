@@ -1,7 +1,7 @@
 import jax
 import pytest
 
-from jaxest import compile_cache, xla_flags
+from jaxest import compile_cache, gc_thresholds, xla_flags
 
 # The suite compiles far more than it runs: XLA flags that compile faster (jaxest.xla_flags has
 # the measurements), added before the first computation; subprocesses and notebooks inherit them.
@@ -14,6 +14,10 @@ jax.config.update("jax_enable_x64", True)
 # JAX's persistent compilation cache only where JAXEST_COMPILATION_CACHE=1 asks for it
 # (jaxest.compile_cache says why it is off by default); subprocesses and notebooks inherit it.
 compile_cache.enable()
+
+# Python's cyclic garbage collector, run 150 times less often: at its default thresholds it took
+# 23-31 s of each worker's CPU (jaxest.gc_thresholds has the measurements).
+gc_thresholds.collect_rarely()
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -17,5 +17,10 @@ def test_notebook_runs(path):
         notebook,
         timeout=900,
         kernel_name="python3",
+        # the suite's garbage-collector thresholds in the kernel too (jaxest.gc_thresholds)
+        extra_arguments=[
+            "--IPKernelApp.exec_lines=from jaxest import gc_thresholds",
+            "--IPKernelApp.exec_lines=gc_thresholds.collect_rarely()",
+        ],
         resources={"metadata": {"path": str(path.parent)}},
     ).execute()
