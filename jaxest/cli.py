@@ -11,7 +11,7 @@ import threading
 import time
 from pathlib import Path
 
-from jaxest import compile_cache, gc_thresholds, studies, xla_flags
+from jaxest import compile_cache, studies, xla_flags
 from jaxest.report import write_json
 
 
@@ -141,7 +141,6 @@ def _run_here(names: list[str], args, seconds: dict[str, float]) -> dict[str, di
 
     jax.config.update("jax_enable_x64", True)  # studies run in float64 unless they say otherwise
     compile_cache.enable()  # where JAXEST_COMPILATION_CACHE=1 asks for it
-    gc_thresholds.collect_rarely()  # the studies trace and compile a lot (the module says why)
     index = {}
     for i, name in enumerate(names):
         start = time.perf_counter()
