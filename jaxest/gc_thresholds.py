@@ -3,14 +3,14 @@ it runs, such as the test suite.
 
 Tracing a program to a jaxpr and lowering it allocate millions of short-lived container objects
 (tracers, equations, MLIR attributes). At Python's default thresholds, (700, 10, 10), the
-collector runs every 700 net allocations and, every 100 runs, walks every object the process
-holds, which in a test-suite worker that has imported jax, scipy and the reference libraries is
-several million. In a full ``make test`` on the 2-core machine the two pytest-xdist workers ran
-it 15 and 19 thousand times, for 23 and 31 s of their CPU; at :data:`FOR_TRACING` it ran about
-500 times, for 4 s each, and the suite took 334 instead of 392 s (user CPU 609 against 721 s),
-with the same peak memory (1.7 GB). The studies of ``python -m jaxest reproduce``, which run
-more than they compile, gained within the noise (``reproduce filters network``: 79.0 and 86.4 s
-against 82.9 and 87.0 s), so they keep Python's default. docs/performance.md has the
+collector runs every 700 net allocations and, up to once every 100 runs, walks every object the
+process holds, which in a test-suite worker that has imported jax, scipy and the reference
+libraries is several million. In a full ``make test`` on the 2-core machine the two pytest-xdist
+workers ran it 21 and 15 thousand times, for 31 and 23 s of their CPU; at :data:`FOR_TRACING` it
+ran about 500 times, for 4 s each, and the suite took 334 instead of 392 s (user CPU 609 against
+721 s), with the same peak memory (1.7 GB). The studies of ``python -m jaxest reproduce``, which
+run more than they compile, gained within the noise (``reproduce filters network``: 79.0 and
+86.4 s against 82.9 and 87.0 s), so they keep Python's default. docs/performance.md has the
 measurements.
 
 Reference counting still frees everything that is not in a reference cycle as soon as it is

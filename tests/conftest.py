@@ -15,7 +15,7 @@ jax.config.update("jax_enable_x64", True)
 # (jaxest.compile_cache says why it is off by default); subprocesses and notebooks inherit it.
 compile_cache.enable()
 
-# Python's cyclic garbage collector, run 150 times less often: at its default thresholds it took
+# Python's cyclic garbage collector, run 30-40 times less often: at its default thresholds it took
 # 23-31 s of each worker's CPU (jaxest.gc_thresholds has the measurements).
 gc_thresholds.collect_rarely()
 
