@@ -27,6 +27,7 @@ covariance tangent dP, the factor tangent dU = 1/2 dP U D^-2, dD = 0, which repr
 from __future__ import annotations
 
 import functools
+import operator
 
 import jax
 import jax.numpy as jnp
@@ -266,12 +267,19 @@ def mv(a, x):
     return mm(a, x[..., None])[..., 0]
 
 
+def _split_last(A, axis):
+    """A's slices of width one along ``axis`` (-1 or -2), each keeping that axis."""
+    axis = A.ndim + axis
+    return jax.lax.split(A, (1,) * A.shape[axis], axis=axis)
+
+
 def _reduce_mm(a, b):
     return jnp.sum(a[..., :, :, None] * b[..., None, :, :], axis=-2)
 
 
 def _rank_one_mm(a, b):
-    return sum(a[..., :, j, None] * b[..., None, j, :] for j in range(a.shape[-1]))
+    terms = (c * r for c, r in zip(_split_last(a, -1), _split_last(b, -2), strict=True))
+    return functools.reduce(operator.add, terms)
 
 
 @jax.custom_batching.custom_vmap
@@ -344,29 +352,54 @@ def solve_triangular(L, B, *, lower: bool):
 # substitutions. Differentiating the unrolled scalar recursions instead wrote the 6 x 3 Kalman
 # filter's value_and_grad as 261 fusions (81 with LAPACK), compiled in 4.7 s (LAPACK: 1.5 s);
 # with these rules it is 189 fusions and 4.0 s.
+#
+# The unrolled kernels (and :func:`mm`'s rank-one sum) take a matrix apart with one ``split`` per axis, not one entry at a time
+# (A[..., i, j]: a slice and a reshape per entry), and the Cholesky factor keeps its pieces'
+# unit axes so that they combine without reshapes or broadcasts. The 6 x 3 Kalman filter's
+# value_and_grad under ``vmap`` has a jaxpr of 3 525 lines instead of 7 002 and its first call
+# (trace, lower, compile) takes 1.95-1.98 s instead of 2.52-2.56 s, running as fast
+# (docs/performance.md, "Compile time of the small-matrix kernels").
+
+
+def _entries(A):
+    """A's entries as rows of (..., 1, 1) pieces: ``_entries(A)[i][j]`` is A[..., i:i+1, j:j+1]."""
+    return [_split_last(row, -1) for row in _split_last(A, -2)]
+
+
+def _assemble(rows):
+    """The inverse of :func:`_entries`: rows of (..., 1, 1) pieces as one matrix."""
+    axis = rows[0][0].ndim - 1
+    return jax.lax.concatenate([jax.lax.concatenate(row, axis) for row in rows], axis - 1)
 
 
 def _unrolled_cholesky(A):
     n = A.shape[-1]
+    a = _entries(A)
     L = [[None] * n for _ in range(n)]
     for j in range(n):
-        diag = jnp.sqrt(A[..., j, j] - sum((L[j][k] ** 2 for k in range(j)), 0.0))
+        diag = jnp.sqrt(
+            functools.reduce(operator.sub, (L[j][k] * L[j][k] for k in range(j)), a[j][j])
+        )
         L[j][j] = diag
         for i in range(j + 1, n):
-            L[i][j] = (A[..., i, j] - sum((L[i][k] * L[j][k] for k in range(j)), 0.0)) / diag
-    zero = jnp.zeros_like(A[..., 0, 0])
-    rows = [jnp.stack([L[i][j] if j <= i else zero for j in range(n)], -1) for i in range(n)]
-    return jnp.stack(rows, -2)
+            dot = (L[i][k] * L[j][k] for k in range(j))
+            L[i][j] = functools.reduce(operator.sub, dot, a[i][j]) / diag
+    zero = jnp.zeros_like(a[0][0])
+    return _assemble([[L[i][j] if j <= i else zero for j in range(n)] for i in range(n)])
 
 
 def _unrolled_substitution(L, B, lower):
-    """X with L X = B (B a matrix), reading only L's ``lower`` or upper triangle."""
+    """X with L X = B (B a matrix), reading only L's ``lower`` or upper triangle. B's rows and
+    the solution's are kept as (..., p) arrays: as (..., 1, p) pieces the 4 x 2 Kalman filter's
+    value_and_grad under ``vmap`` ran 1.3x slower."""
     n = L.shape[-1]
+    entries = _entries(L)
+    b = [row[..., 0, :] for row in _split_last(B, -2)]
     X = [None] * n
     for i in range(n) if lower else range(n - 1, -1, -1):
         done = range(i) if lower else range(i + 1, n)
-        acc = B[..., i, :] - sum((L[..., i, k, None] * X[k] for k in done), 0.0)
-        X[i] = acc / L[..., i, i, None]
+        acc = functools.reduce(operator.sub, (entries[i][k][..., 0] * X[k] for k in done), b[i])
+        X[i] = acc / entries[i][i][..., 0]
     return jnp.stack(X, -2)
 
 
