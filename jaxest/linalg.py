@@ -393,13 +393,13 @@ def _unrolled_substitution(L, B, lower):
     the solution's are kept as (..., p) arrays: as (..., 1, p) pieces the 4 x 2 Kalman filter's
     value_and_grad under ``vmap`` ran 1.3x slower."""
     n = L.shape[-1]
-    entries = _entries(L)
+    entries = [_split_last(row[..., 0, :], -1) for row in _split_last(L, -2)]  # (..., 1) each
     b = [row[..., 0, :] for row in _split_last(B, -2)]
     X = [None] * n
     for i in range(n) if lower else range(n - 1, -1, -1):
         done = range(i) if lower else range(i + 1, n)
-        acc = functools.reduce(operator.sub, (entries[i][k][..., 0] * X[k] for k in done), b[i])
-        X[i] = acc / entries[i][i][..., 0]
+        acc = functools.reduce(operator.sub, (entries[i][k] * X[k] for k in done), b[i])
+        X[i] = acc / entries[i][i]
     return jnp.stack(X, -2)
 
 
