@@ -353,12 +353,13 @@ def solve_triangular(L, B, *, lower: bool):
 # filter's value_and_grad as 261 fusions (81 with LAPACK), compiled in 4.7 s (LAPACK: 1.5 s);
 # with these rules it is 189 fusions and 4.0 s.
 #
-# The unrolled kernels (and :func:`mm`'s rank-one sum) take a matrix apart with one ``split`` per axis, not one entry at a time
-# (A[..., i, j]: a slice and a reshape per entry), and the Cholesky factor keeps its pieces'
-# unit axes so that they combine without reshapes or broadcasts. The 6 x 3 Kalman filter's
-# value_and_grad under ``vmap`` has a jaxpr of 3 451 lines instead of 7 002 and its first call
-# (trace, lower, compile) takes 1.83-1.84 s instead of 2.38-2.43 s, running as fast
-# (docs/performance.md, "Compile time of the small-matrix kernels").
+# The unrolled kernels (and :func:`mm`'s rank-one sum) take a matrix apart with one ``split``
+# per axis, not one entry at a time (A[..., i, j]: a slice and a reshape per entry), and the
+# Cholesky factor keeps its pieces' unit axes so that they combine without reshapes or
+# broadcasts. The 6 x 3 Kalman filter's value_and_grad under ``vmap`` has a jaxpr of 3 451 lines
+# instead of 7 002 and its first call (trace, lower, compile) takes 1.83-1.84 s instead of
+# 2.38-2.43 s, running as fast (docs/performance.md, "Compile time of the small-matrix
+# kernels").
 
 
 def _entries(A):
