@@ -5,7 +5,7 @@ OUT ?= results
 # JAX's persistent compilation cache: off unless JAXEST_COMPILATION_CACHE=1 (jaxest/compile_cache.py
 # says why); then outside the clone, one directory per processor.
 
-.PHONY: reproduce test lint format clean docs docs-check wheel-check
+.PHONY: reproduce test test-fast lint format clean docs docs-check wheel-check
 
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -39,6 +39,11 @@ lint: $(BIN)/.installed-dev
 
 test: lint
 	$(BIN)/python -m pytest -n 2 -q --durations=20
+
+# The inner loop: the suite without the tests marked slow (whole studies, notebooks, several
+# processes); `make test` stays the whole suite.
+test-fast: lint
+	$(BIN)/python -m pytest -n 2 -q -m "not slow"
 
 format: $(BIN)/.installed-dev
 	$(BIN)/ruff check --fix .

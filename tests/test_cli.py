@@ -30,6 +30,7 @@ def test_unknown_study_is_refused():
     assert done.returncode != 0 and "invalid choice" in done.stderr
 
 
+@pytest.mark.slow
 def test_filters_study_quick_beside_another(tmp_path):
     # XLA flags of the user's own (here the suite's other one): the command keeps them and adds
     # the flag that compiles faster (jaxest.xla_flags), and the index records what ran

@@ -31,6 +31,7 @@ def test_compiled_study_calls_no_lapack(closed_form_bound):
     assert not [c for c in calls if "lapack" in c.lower()], calls
 
 
+@pytest.mark.slow
 def test_one_vmap_over_200_runs_repeats_without_hanging():
     script = textwrap.dedent(f"""
         import jax
