@@ -37,13 +37,16 @@ lint: $(BIN)/.installed-dev
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 
+# two pytest-xdist workers, one per core of the 2-core machines this runs on
+PYTEST = $(BIN)/python -m pytest -n 2 -q
+
 test: lint
-	$(BIN)/python -m pytest -n 2 -q --durations=20
+	$(PYTEST) --durations=20
 
 # The inner loop: the suite without the tests marked slow (whole studies, notebooks, several
 # processes); `make test` stays the whole suite.
 test-fast: lint
-	$(BIN)/python -m pytest -n 2 -q -m "not slow"
+	$(PYTEST) -m "not slow"
 
 format: $(BIN)/.installed-dev
 	$(BIN)/ruff check --fix .

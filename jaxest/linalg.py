@@ -378,13 +378,9 @@ def _unrolled_cholesky(A):
     a = _entries(A)
     L = [[None] * n for _ in range(n)]
     for j in range(n):
-        diag = jnp.sqrt(
-            functools.reduce(operator.sub, (L[j][k] * L[j][k] for k in range(j)), a[j][j])
-        )
-        L[j][j] = diag
-        for i in range(j + 1, n):
-            dot = (L[i][k] * L[j][k] for k in range(j))
-            L[i][j] = functools.reduce(operator.sub, dot, a[i][j]) / diag
+        for i in range(j, n):  # column j, its diagonal first
+            rest = functools.reduce(operator.sub, (L[i][k] * L[j][k] for k in range(j)), a[i][j])
+            L[i][j] = jnp.sqrt(rest) if i == j else rest / L[j][j]
     zero = jnp.zeros_like(a[0][0])
     return _assemble([[L[i][j] if j <= i else zero for j in range(n)] for i in range(n)])
 
