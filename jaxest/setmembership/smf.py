@@ -162,8 +162,10 @@ class SMFResult(AbstractResult):
     def unbounded(self) -> Bool[Array, " T"]:
         return (self.status & Status.UNBOUNDED) != 0
 
+    @eqx.filter_jit
     def contains(self, states: Float[Array, "T n"]) -> Bool[Array, " T"]:
-        """Whether states[k] lies in the k-th ellipsoid (always true where unbounded)."""
+        """Whether states[k] lies in the k-th ellipsoid (always true where unbounded). Compiled
+        as one program: called outside ``jit``, op by op, it compiled about 160 of them."""
         bounded_shape = jnp.where(
             self.unbounded[:, None, None], jnp.eye(states.shape[-1]), self.shape
         )
@@ -248,7 +250,12 @@ class SetMembershipFilter(AbstractEstimator):
 
     def predict(self, model: BoundedNoiseModel, prior: Ellipsoid, u=None, k=0) -> Ellipsoid:
         """The time update of ``prior`` (at step ``k``) alone: the set one step later, without a
-        measurement."""
+        measurement. Compiled as one program, once for every step ``k`` (called outside ``jit``
+        op by op, its first call compiled about 160 and took 2.7 s instead of 0.5 s)."""
+        return self._predict(model, prior, u, jnp.asarray(k))
+
+    @eqx.filter_jit
+    def _predict(self, model, prior, u, k):
         center, shape, _ = self.time_update(model, prior.center, prior.shape, u, k)
         return Ellipsoid(center, shape)
 
