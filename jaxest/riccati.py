@@ -51,6 +51,8 @@ Bbar = -Abar K^T. The status, residual and margin carry no gradient.
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -410,6 +412,14 @@ _care.defvjp(_care_fwd, _care_bwd)
 
 
 # --------------------------------------------------------------------------- status
+@functools.partial(jax.jit, static_argnames="discrete")
+def _solve(A, B, Q, R, *, discrete: bool) -> RiccatiSolution:
+    """The stabilising solution with its gain and status, compiled as one program: run op by op
+    outside ``jit``, a first ``solve_dare`` compiled 78 programs and took 1.2 s instead of 0.4."""
+    X, converged = (_dare if discrete else _care)(A, B, Q, R)
+    return _solution(A, B, Q, R, X, converged, discrete=discrete)
+
+
 def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
     """X with its gain and status (module docstring: the status check)."""
     terms = _dare_terms if discrete else _care_terms
@@ -510,9 +520,7 @@ def solve_dare(
     """Stabilising solution X of X = A^T X A - A^T X B (R + B^T X B)^{-1} B^T X A + Q
     (scipy.linalg.solve_discrete_are's convention), with K = (R + B^T X B)^{-1} B^T X A.
     Q symmetric PSD, R symmetric PD."""
-    A, B, Q, R = _check_arguments(A, B, Q, R, discrete=True)
-    X, converged = _dare(A, B, Q, R)
-    return _solution(A, B, Q, R, X, converged, discrete=True)
+    return _solve(*_check_arguments(A, B, Q, R, discrete=True), discrete=True)
 
 
 @working_precision_by_default
@@ -522,9 +530,7 @@ def solve_care(
     """Stabilising solution X of A^T X + X A - X B R^{-1} B^T X + Q = 0
     (scipy.linalg.solve_continuous_are's convention), with K = R^{-1} B^T X.
     Q symmetric PSD, R symmetric PD."""
-    A, B, Q, R = _check_arguments(A, B, Q, R, discrete=False)
-    X, converged = _care(A, B, Q, R)
-    return _solution(A, B, Q, R, X, converged, discrete=False)
+    return _solve(*_check_arguments(A, B, Q, R, discrete=False), discrete=False)
 
 
 def _transposed_gain(solution: RiccatiSolution) -> RiccatiSolution:
@@ -542,9 +548,8 @@ def solve_filter_dare(
     covariance of w), stabilising: F - K H is Schur with K = F Sigma H^T (H Sigma H^T + R)^{-1},
     the one-step predictor gain. It exists when every mode of F with |lambda| >= 1 is
     observable through H and none on the unit circle is unexcited by Q."""
-    A, B, Q, R = _check_arguments(F, H, Q, R, discrete=True, wording=_FILTER)
-    X, converged = _dare(A, B, Q, R)
-    return _transposed_gain(_solution(A, B, Q, R, X, converged, discrete=True))
+    arguments = _check_arguments(F, H, Q, R, discrete=True, wording=_FILTER)
+    return _transposed_gain(_solve(*arguments, discrete=True))
 
 
 @working_precision_by_default
@@ -553,9 +558,8 @@ def solve_filter_care(
 ) -> RiccatiSolution:
     """Steady-state Kalman-Bucy covariance: F Sigma + Sigma F^T - Sigma H^T R^{-1} H Sigma + Q = 0
     for dx/dt = F x + w, y = H x + v, stabilising: F - K H is Hurwitz with K = Sigma H^T R^{-1}."""
-    A, B, Q, R = _check_arguments(F, H, Q, R, discrete=False, wording=_FILTER)
-    X, converged = _care(A, B, Q, R)
-    return _transposed_gain(_solution(A, B, Q, R, X, converged, discrete=False))
+    arguments = _check_arguments(F, H, Q, R, discrete=False, wording=_FILTER)
+    return _transposed_gain(_solve(*arguments, discrete=False))
 
 
 def lqr_gain(

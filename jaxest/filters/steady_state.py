@@ -89,6 +89,14 @@ def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
     Phi, H, R = model.F, model.H, model.R
     G, _ = model.process_noise(None, None, 0)
     solution = solve_filter_dare(Phi, H, symmetrize(G @ model.Q @ G.T), R)
+    return _gain(Phi, H, R, solution)
+
+
+@jax.jit
+def _gain(Phi, H, R, solution) -> SteadyStateGain:
+    """K (eq 4) and Q_eps from the Riccati solution, compiled as one program: user code calls
+    :func:`steady_state_gain` outside ``jit``, where each operation compiled a program of its
+    own."""
     Sigma = jnp.where(solution.ok, solution.X, jnp.nan)
     Qe = symmetrize(H @ Sigma @ H.T + R)
     K = jnp.linalg.solve(Qe, H @ Sigma).T
