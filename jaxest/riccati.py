@@ -414,8 +414,9 @@ _care.defvjp(_care_fwd, _care_bwd)
 # --------------------------------------------------------------------------- status
 @functools.partial(jax.jit, static_argnames="discrete")
 def _solve(A, B, Q, R, *, discrete: bool) -> RiccatiSolution:
-    """The stabilising solution with its gain and status, compiled as one program: run op by op
-    outside ``jit``, a first ``solve_dare`` compiled 78 programs and took 1.2 s instead of 0.4."""
+    """The stabilising solution with its gain and status, compiled as one program: the public
+    solvers run it after their eager argument checks (docs/performance.md, "First calls outside
+    jit")."""
     X, converged = (_dare if discrete else _care)(A, B, Q, R)
     return _solution(A, B, Q, R, X, converged, discrete=discrete)
 

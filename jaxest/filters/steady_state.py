@@ -94,9 +94,8 @@ def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
 
 @jax.jit
 def _gain(Phi, H, R, solution) -> SteadyStateGain:
-    """K (eq 4) and Q_eps from the Riccati solution, compiled as one program: user code calls
-    :func:`steady_state_gain` outside ``jit``, where each operation compiled a program of its
-    own."""
+    """K (eq 4) and Q_eps from the Riccati solution, compiled as one program
+    (docs/performance.md, "First calls outside jit")."""
     Sigma = jnp.where(solution.ok, solution.X, jnp.nan)
     Qe = symmetrize(H @ Sigma @ H.T + R)
     K = jnp.linalg.solve(Qe, H @ Sigma).T

@@ -165,7 +165,7 @@ class SMFResult(AbstractResult):
     @eqx.filter_jit
     def contains(self, states: Float[Array, "T n"]) -> Bool[Array, " T"]:
         """Whether states[k] lies in the k-th ellipsoid (always true where unbounded). Compiled
-        as one program: called outside ``jit``, op by op, it compiled about 160 of them."""
+        as one program (docs/performance.md, "First calls outside jit")."""
         bounded_shape = jnp.where(
             self.unbounded[:, None, None], jnp.eye(states.shape[-1]), self.shape
         )
@@ -250,8 +250,8 @@ class SetMembershipFilter(AbstractEstimator):
 
     def predict(self, model: BoundedNoiseModel, prior: Ellipsoid, u=None, k=0) -> Ellipsoid:
         """The time update of ``prior`` (at step ``k``) alone: the set one step later, without a
-        measurement. Compiled as one program, once for every step ``k`` (called outside ``jit``
-        op by op, its first call compiled about 160 and took 2.7 s instead of 0.5 s)."""
+        measurement. Compiled as one program, once for every step ``k`` (docs/performance.md,
+        "First calls outside jit")."""
         return self._predict(model, prior, u, jnp.asarray(k))
 
     @eqx.filter_jit

@@ -57,7 +57,7 @@ def characteristic_polynomial(M: Float[Array, "n n"]):
 @eqx.filter_jit
 def arma_innovation_model(gain: SteadyStateGain) -> ArmaInnovationModel:
     """Eq 7: Psi = det(I - Psi_f q^-1), D = Psi I_m, A = D - H Phi adj(I - Psi_f q^-1) K q^-1.
-    Compiled as one program (op by op outside ``jit`` it compiled 45)."""
+    Compiled as one program (docs/performance.md, "First calls outside jit")."""
     psi, adj = characteristic_polynomial(gain.Psi_f)
     m = gain.H.shape[0]
     eye = jnp.eye(m, dtype=psi.dtype)
