@@ -17,6 +17,7 @@ from jaxest.riccati import (
     solve_filter_dare,
 )
 from tests.exact_riccati import exact_care, exact_dare
+from tests.lowering import programs_compiled
 
 
 def random_problem(seed, n, m):
@@ -43,6 +44,15 @@ def test_dare_matches_scipy(n, m):
         np.testing.assert_allclose(X, ref, rtol=1e-9, atol=1e-9 * np.abs(ref).max())
         residual = A.T @ X @ A - A.T @ X @ B @ np.linalg.solve(R + B.T @ X @ B, B.T @ X @ A) + Q - X
         assert np.abs(residual).max() < 1e-9 * np.abs(X).max()
+
+
+def test_a_first_call_outside_jit_compiles_the_solver_as_one_program():
+    """The solvers check their arguments eagerly and run the rest as one program; op by op
+    outside ``jit``, a first 4-state ``solve_dare`` compiled 65 programs (1.3 s)."""
+    A, B, Q, R = random_problem(5, 5, 4)  # a size no other test here solves
+    for solve, arguments in ((solve_dare, (A, B)), (solve_filter_care, (A.T, B.T))):
+        assert programs_compiled(solve, *arguments, Q, R) <= 3
+        assert int(solve(*arguments, Q, R).status) == RiccatiStatus.OK
 
 
 @pytest.mark.parametrize("n,m", SIZES)

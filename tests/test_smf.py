@@ -18,6 +18,7 @@ from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter, set
 from jaxest.setmembership.status import SetStatus as Status
 from jaxest.studies import smf_fdi
 from jaxest.systems import duffing
+from tests.lowering import programs_compiled
 
 _spec = importlib.util.spec_from_file_location(
     "smf_numpy_reference", Path(__file__).parent.parent / "benchmarks" / "smf.py"
@@ -257,3 +258,19 @@ def test_state_only_functions_scalar_measurements_and_predicted_sets():
         wrong = BoundedNoiseModel(pendulum, lambda x: x, [1e-3, 1e-3], [0.02])
         with pytest.raises(ValueError, match=r"^model.h: expected it to return shape \(1,\)"):
             set_membership_filter(wrong, ys, prior=prior)
+
+
+def test_predict_and_contains_outside_jit_compile_one_program_each():
+    """Called outside ``jit``, as in a notebook, ``predict`` and ``contains`` compile one program
+    each (op by op, a first ``predict`` on the Duffing model compiled 154)."""
+    model = BoundedNoiseModel(
+        lambda x: 0.9 * x + 0.05 * x**2, lambda x: x[:2], [1e-3] * 3, [0.01, 0.01]
+    )  # three states: a model no other test here runs
+    prior = Ellipsoid(jnp.array([0.1, 0.2, 0.3]), 0.01 * jnp.eye(3))
+    smf = SetMembershipFilter()
+    assert programs_compiled(smf.predict, model, prior) <= 2
+    result = set_membership_filter(model, 0.1 * jnp.ones((20, 2)), prior=prior)
+    far = result.center + 10.0
+    assert programs_compiled(result.contains, result.center) <= 2
+    assert np.all(np.asarray(result.contains(result.center)))
+    assert not np.any(np.asarray(result.contains(far)))

@@ -17,6 +17,7 @@ from jaxest.smoothers.steady_state import (
 )
 from jaxest.smoothers.wiener import WienerSmoother, lagged_sum, wiener_smooth
 from jaxest.systems.wiener_example import ARBITRARY_START, PAPER, PRINTED_ADJ_K, paper_model
+from tests.lowering import programs_compiled
 from tests.reference import kalman_filter, rts_smoother
 
 wiener_smooth_jit = jax.jit(wiener_smooth, static_argnames=("start", "end_term"))
@@ -189,6 +190,19 @@ def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
         for _ in range(60):
             P = 4 * P / (1 + P)
         np.testing.assert_allclose(P, 3.0, rtol=1e-12)
+
+
+def test_from_model_outside_jit_compiles_its_arithmetic_as_a_few_programs():
+    """After the eager argument checks, the noise covariance, the Riccati solution, the gain and
+    the ARMA model are a program each (op by op outside ``jit``, ``from_model`` of the paper's
+    model compiled 90 programs)."""
+    model = je.LinearGaussian(  # a 2-state / 1-output model no other test here compiles for
+        F=jnp.array([[0.9, 0.1], [0.0, 0.5]]), H=jnp.array([[1.0, 0.0]]), Q=0.3 * jnp.eye(2),
+        R=jnp.eye(1),
+    )  # fmt: skip
+    assert programs_compiled(WienerSmoother.from_model, model) <= 8
+    smoother = WienerSmoother.from_model(model)
+    np.testing.assert_allclose(smoother.gain.Sigma, steady_state_gain(model).Sigma)
 
 
 def test_smooth_requires_the_final_innovations():

@@ -86,10 +86,15 @@ def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
     Gamma^T, R)``, then K (eq 4) and Q_eps. Concrete (F, H) without a stabilising solution raise
     a ``ValueError`` naming them; under ``jit`` a solution whose status is not OK gives NaN."""
     check_time_invariant(model)
-    Phi, H, R = model.F, model.H, model.R
+    solution = solve_filter_dare(model.F, model.H, _state_noise_cov(model), model.R)
+    return _gain(model.F, model.H, model.R, solution)
+
+
+@eqx.filter_jit
+def _state_noise_cov(model: LinearGaussian) -> Float[Array, "n n"]:
+    """Gamma Q Gamma^T, the covariance of the noise on the state, compiled as one program."""
     G, _ = model.process_noise(None, None, 0)
-    solution = solve_filter_dare(Phi, H, symmetrize(G @ model.Q @ G.T), R)
-    return _gain(Phi, H, R, solution)
+    return symmetrize(G @ model.Q @ G.T)
 
 
 @jax.jit
