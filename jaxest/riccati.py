@@ -412,13 +412,16 @@ _care.defvjp(_care_fwd, _care_bwd)
 
 
 # --------------------------------------------------------------------------- status
-@functools.partial(jax.jit, static_argnames="discrete")
-def _solve(A, B, Q, R, *, discrete: bool) -> RiccatiSolution:
+@functools.partial(jax.jit, static_argnames=("discrete", "filter_form"))
+def _solve(A, B, Q, R, *, discrete: bool, filter_form: bool) -> RiccatiSolution:
     """The stabilising solution with its gain and status, compiled as one program: the public
     solvers run it after their eager argument checks (docs/performance.md, "First calls outside
-    jit")."""
+    jit"). In the filter forms (A, B) are the user's (F, H), transposed here, and so is K."""
+    if filter_form:
+        A, B = A.T, B.T
     X, converged = (_dare if discrete else _care)(A, B, Q, R)
-    return _solution(A, B, Q, R, X, converged, discrete=discrete)
+    solution = _solution(A, B, Q, R, X, converged, discrete=discrete)
+    return eqx.tree_at(lambda s: s.K, solution, solution.K.T) if filter_form else solution
 
 
 def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
@@ -460,27 +463,29 @@ _FILTER = {
 }
 
 
-def _check_arguments(A, B, Q, R, *, discrete: bool, wording=_CONTROL):
+def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
     """Shapes always; symmetry, definiteness and the existence of a stabilising solution when
-    the values are concrete. Filter wording: (A, B) are the user's (F, H), transposed here.
-    Returns the control-form arrays in one floating dtype."""
+    the values are concrete. ``filter_form``: (A, B) are the user's (F, H), named so in the
+    errors, whose modes are checked in control form (F^T, H^T). Returns the arrays in one
+    floating dtype."""
+    wording = _FILTER if filter_form else _CONTROL
     names = wording["names"]
     for name, value in zip(names, (A, B, Q, R), strict=True):
         if np.ndim(value) != 2:
             raise ValueError(f"{name}: expected a matrix, got shape {np.shape(value)}")
-    filter_form = wording is _FILTER
     m, n = np.shape(B) if filter_form else np.shape(B)[::-1]
     check_matrix(names[0], A, (n, n))
     check_matrix(names[2], Q, (n, n), psd=True)
     check_matrix(names[3], R, (m, m), spd=True)
     dtype = jnp.result_type(A, B, Q, R, jnp.zeros((), jnp.float32))
     A, B, Q, R = (jnp.asarray(v, dtype) for v in (A, B, Q, R))
-    if filter_form:
-        A, B = A.T, B.T
     if all(is_concrete(v) for v in (A, B, Q)):
+        control_A, control_B = (np.asarray(v, np.float64) for v in (A, B))
+        if filter_form:
+            control_A, control_B = control_A.T, control_B.T
         _check_modes(
-            np.asarray(A, np.float64),
-            np.asarray(B, np.float64),
+            control_A,
+            control_B,
             np.asarray(Q, np.float64),
             discrete,
             wording,
@@ -521,7 +526,8 @@ def solve_dare(
     """Stabilising solution X of X = A^T X A - A^T X B (R + B^T X B)^{-1} B^T X A + Q
     (scipy.linalg.solve_discrete_are's convention), with K = (R + B^T X B)^{-1} B^T X A.
     Q symmetric PSD, R symmetric PD."""
-    return _solve(*_check_arguments(A, B, Q, R, discrete=True), discrete=True)
+    arguments = _check_arguments(A, B, Q, R, discrete=True)
+    return _solve(*arguments, discrete=True, filter_form=False)
 
 
 @working_precision_by_default
@@ -531,13 +537,8 @@ def solve_care(
     """Stabilising solution X of A^T X + X A - X B R^{-1} B^T X + Q = 0
     (scipy.linalg.solve_continuous_are's convention), with K = R^{-1} B^T X.
     Q symmetric PSD, R symmetric PD."""
-    return _solve(*_check_arguments(A, B, Q, R, discrete=False), discrete=False)
-
-
-def _transposed_gain(solution: RiccatiSolution) -> RiccatiSolution:
-    return RiccatiSolution(
-        solution.X, solution.K.T, solution.status, solution.residual, solution.margin
-    )
+    arguments = _check_arguments(A, B, Q, R, discrete=False)
+    return _solve(*arguments, discrete=False, filter_form=False)
 
 
 @working_precision_by_default
@@ -549,8 +550,8 @@ def solve_filter_dare(
     covariance of w), stabilising: F - K H is Schur with K = F Sigma H^T (H Sigma H^T + R)^{-1},
     the one-step predictor gain. It exists when every mode of F with |lambda| >= 1 is
     observable through H and none on the unit circle is unexcited by Q."""
-    arguments = _check_arguments(F, H, Q, R, discrete=True, wording=_FILTER)
-    return _transposed_gain(_solve(*arguments, discrete=True))
+    arguments = _check_arguments(F, H, Q, R, discrete=True, filter_form=True)
+    return _solve(*arguments, discrete=True, filter_form=True)
 
 
 @working_precision_by_default
@@ -559,8 +560,8 @@ def solve_filter_care(
 ) -> RiccatiSolution:
     """Steady-state Kalman-Bucy covariance: F Sigma + Sigma F^T - Sigma H^T R^{-1} H Sigma + Q = 0
     for dx/dt = F x + w, y = H x + v, stabilising: F - K H is Hurwitz with K = Sigma H^T R^{-1}."""
-    arguments = _check_arguments(F, H, Q, R, discrete=False, wording=_FILTER)
-    return _transposed_gain(_solve(*arguments, discrete=False))
+    arguments = _check_arguments(F, H, Q, R, discrete=False, filter_form=True)
+    return _solve(*arguments, discrete=False, filter_form=True)
 
 
 def lqr_gain(
