@@ -267,7 +267,7 @@ def mv(a, x):
     return mm(a, x[..., None])[..., 0]
 
 
-def _split_last(A, axis):
+def _unit_slices(A, axis):
     """A's slices of width one along ``axis`` (-1 or -2), each keeping that axis."""
     axis = A.ndim + axis
     return jax.lax.split(A, (1,) * A.shape[axis], axis=axis)
@@ -278,7 +278,7 @@ def _reduce_mm(a, b):
 
 
 def _rank_one_mm(a, b):
-    terms = (c * r for c, r in zip(_split_last(a, -1), _split_last(b, -2), strict=True))
+    terms = (c * r for c, r in zip(_unit_slices(a, -1), _unit_slices(b, -2), strict=True))
     return functools.reduce(operator.add, terms)
 
 
@@ -364,7 +364,7 @@ def solve_triangular(L, B, *, lower: bool):
 
 def _entries(A):
     """A's entries as rows of (..., 1, 1) pieces: ``_entries(A)[i][j]`` is A[..., i:i+1, j:j+1]."""
-    return [_split_last(row, -1) for row in _split_last(A, -2)]
+    return [_unit_slices(row, -1) for row in _unit_slices(A, -2)]
 
 
 def _assemble(rows):
@@ -390,8 +390,8 @@ def _unrolled_substitution(L, B, lower):
     the solution's are kept as (..., p) arrays: as (..., 1, p) pieces the 4 x 2 Kalman filter's
     value_and_grad under ``vmap`` ran 1.3x slower."""
     n = L.shape[-1]
-    entries = [_split_last(row[..., 0, :], -1) for row in _split_last(L, -2)]  # (..., 1) each
-    b = [row[..., 0, :] for row in _split_last(B, -2)]
+    entries = [_unit_slices(row[..., 0, :], -1) for row in _unit_slices(L, -2)]  # (..., 1) each
+    b = [row[..., 0, :] for row in _unit_slices(B, -2)]
     X = [None] * n
     for i in range(n) if lower else range(n - 1, -1, -1):
         done = range(i) if lower else range(i + 1, n)
