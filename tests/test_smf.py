@@ -18,6 +18,7 @@ from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter, set
 from jaxest.setmembership.status import SetStatus as Status
 from jaxest.studies import smf_fdi
 from jaxest.systems import duffing
+from jaxest.systems._box_noise import simulate_box_noise
 from tests.lowering import programs_compiled
 
 _spec = importlib.util.spec_from_file_location(
@@ -93,6 +94,35 @@ def test_unbounded_set_is_reported_not_nan(dtype):
     assert np.all(np.isinf(np.diagonal(result.shape[start:], axis1=1, axis2=2)))
     assert not np.any(np.asarray(result.inconsistent[start:]))
     assert np.all(np.asarray(result.contains(jnp.full((60, 2), 1e9, dtype)))[start:])
+
+
+def test_float32_carries_sets_many_noise_widths_across():
+    # process noise 0.0005, measurement noise 0.05: the first filtered sets are about 0.09 in
+    # radius, 180 of the least half-width. float32 keeps the sets float64 keeps (the default
+    # radius limit was 64 least half-widths in float32, 0.032 here: it flagged them unbounded).
+    bounds = (0.0005, 0.05)
+    simulate = lambda key: simulate_box_noise(
+        jax.random.split(key), duffing.Duffing(), duffing.observe, jnp.asarray(duffing.X0),
+        jnp.zeros((60, 2)), *bounds,
+    )  # fmt: skip
+    states, ys = jax.vmap(simulate)(jax.random.split(jax.random.key(6), 20))
+    results = {}
+    for dtype in (jnp.float32, jnp.float64):
+        dynamics = duffing.Duffing()
+        model = BoundedNoiseModel(
+            dynamics, duffing.observe, jnp.full(2, bounds[0], dtype), jnp.full(2, bounds[1], dtype),
+            f_remainder=dynamics.remainder_bound,
+        )  # fmt: skip
+        prior = SetMembershipFilter().predict(model, duffing.prior(dtype))
+        one = lambda y: run(SetMembershipFilter(), model, y, prior=prior)  # noqa: B023
+        results[dtype] = jax.jit(jax.vmap(one))(ys.astype(dtype))
+    single = results[jnp.float32]
+    assert not np.any(np.asarray(single.status))
+    inside = jax.vmap(lambda r, s: r.contains(s))(single, states.astype(jnp.float32))
+    assert np.all(np.asarray(inside))
+    radii = lambda r: np.sqrt(np.diagonal(np.asarray(r.shape, np.float64), axis1=-2, axis2=-1))
+    assert np.max(radii(single)) > 2 * 0.032
+    np.testing.assert_allclose(radii(single), radii(results[jnp.float64]), rtol=1e-2)
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])

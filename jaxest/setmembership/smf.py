@@ -178,10 +178,12 @@ class SetMembershipFilter(AbstractEstimator):
 
     A set is trusted while its shape matrix is finite, positive definite, has condition number
     at most :func:`~jaxest.setmembership.ellipsoid.max_condition` (kappa n eps <= 2^-10) and every
-    sqrt(P_ii) is at most ``max_radius``. The default radius limit is b sqrt(kappa_max), b the
-    least positive noise half-width: once measured, the set's smallest semi-axis is of the order
-    of the strip and box half-widths, so a longer axis than that means a condition number the
-    arithmetic cannot carry (and a set far larger than the noise that shaped it).
+    sqrt(P_ii) is at most ``max_radius``. The conditioning check guards the arithmetic; the
+    radius limit catches a set growing in every direction, which stays well conditioned. Its
+    default is b sqrt(kappa_max), b the least positive noise half-width and kappa_max
+    :func:`~jaxest.setmembership.ellipsoid.max_condition` in float64 whatever the dtype: about
+    2 10^6 / sqrt(n) noise widths, the same size in float32 as in float64 (docs/papers/smf.md,
+    "Unbounded sets", says why).
 
     With ``recover`` (the default) a filter that lost its set re-initialises from the
     measurement strips alone at the first step where that is guaranteed (:meth:`recovery`,
@@ -203,7 +205,7 @@ class SetMembershipFilter(AbstractEstimator):
         bounds = jnp.concatenate([model.process_bound, model.measurement_bound]).astype(dtype)
         smallest = jnp.min(jnp.where(bounds > 0, bounds, jnp.inf))
         n = model.state_dim
-        return jnp.where(jnp.isfinite(smallest), smallest**2, 1.0) * max_condition(dtype, n)
+        return jnp.where(jnp.isfinite(smallest), smallest**2, 1.0) * max_condition(jnp.float64, n)
 
     def _trusted(self, model, center, shape):
         """``(trusted, conditioned)``: the set passes every check / the conditioning one."""
