@@ -242,6 +242,32 @@ def test_status_flags_nonfinite_inside_jit():
     assert "NONFINITE" in je.Status.describe(int(res.status[0]))
 
 
+@pytest.mark.parametrize(
+    "estimator",
+    [F() for F in FILTERS] + [je.UKF(form="sqrt"), je.ParallelKalmanFilter()],
+    ids=[*IDS, "UKF-sqrt", "ParallelKalmanFilter"],
+)
+def test_status_flags_every_step_whose_outputs_overflow(estimator):
+    # two unobserved states growing 3^k: in float32 a Cholesky factor 3^k stays finite up to
+    # k = 80 while its covariance 9^k overflows from k = 41 (the factored filters' own checks
+    # passed those steps with status OK)
+    dtype = jnp.float32
+    model = je.LinearGaussian(
+        3.0 * jnp.eye(3, dtype=dtype), jnp.eye(3, dtype=dtype)[:1], 0.1 * jnp.eye(3, dtype=dtype),
+        0.1 * jnp.eye(1, dtype=dtype),
+    )  # fmt: skip
+    prior = je.Gaussian(jnp.zeros(3, dtype), jnp.eye(3, dtype=dtype))
+    result = je.run(estimator, model, jnp.zeros((100, 1), dtype), prior=prior)
+    finite = [
+        np.all(np.isfinite(np.asarray(getattr(result, name))), axis=tuple(range(1, ndim)))
+        for name, ndim in (("predicted_mean", 2), ("predicted_cov", 3), ("mean", 2), ("cov", 3))
+    ]
+    overflowed = ~np.logical_and.reduce(finite)
+    assert overflowed.sum() > 20
+    flagged = (np.asarray(result.status) & je.Status.NONFINITE) != 0
+    np.testing.assert_array_equal(flagged[overflowed], True)
+
+
 def test_simulate_compiles_once_per_shape(caplog):
     """``je.simulate`` is one compiled program: a second draw with another key compiles
     nothing (it compiled its scan anew on every call before)."""

@@ -19,6 +19,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_gaussian_arguments, check_gaussian_prior
 from jaxest._estimator import AbstractEstimator, AbstractResult
+from jaxest._status import finite_status
 from jaxest.linalg import FACTORS, chol_inverse, cholesky, cov_from_factor, factor_psd, inv_spd
 
 
@@ -110,6 +111,13 @@ class StepOutput(eqx.Module):
     status: Int[Array, ""] | None
     predicted_factor: AbstractCovarianceFactor | None = None
     factor: AbstractCovarianceFactor | None = None
+
+    def with_covariances_checked(self) -> StepOutput:
+        """This output, its status ``NONFINITE`` where a covariance it outputs is not finite. A
+        factored filter's covariance can overflow while the factor it carries stays finite (S
+        S^T of a float32 Cholesky factor past 1.8e19), which its own status does not see."""
+        covariances = (self.predicted_cov, self.cov, self.innovation_cov)
+        return eqx.tree_at(lambda out: out.status, self, self.status | finite_status(*covariances))
 
 
 class FilterResult(AbstractResult):
@@ -203,6 +211,7 @@ class AbstractGaussianFilter(AbstractEstimator):
 
     def step(self, model, state: GaussianState, k, y, u, key=None):
         x_next, factor_next, output = self.update_predict(model, state.mean, state.factor, k, y, u)
+        output = output.with_covariances_checked()
         return GaussianState(x_next, factor_next, state.loglik + output.loglik), output
 
     def result(self, outputs: StepOutput, final_state: GaussianState) -> FilterResult:

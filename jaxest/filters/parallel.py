@@ -342,6 +342,7 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
         factor = self._factor_type(aux.factor)
         # the input's part of y_k is already removed, so u = None; the prediction is discarded
         _, _, out = self._update.update_predict(model, aux.mean, factor, k, prefix.y, None)
+        out = out.with_covariances_checked()
         inconsistent = loglik_consistency_status(main.loglik, aux.loglik, out.loglik)
         return eqx.tree_at(lambda o: o.status, out, out.status | inconsistent)
 
