@@ -354,6 +354,42 @@ def test_jit_vmap_grad(dtype):
             np.testing.assert_allclose(g, fd, rtol=1e-6)
 
 
+def clustered_model(n, eigenvalue, dtype=jnp.float64):
+    """n states near ``eigenvalue`` (weakly coupled), one measurement: Psi_f's eigenvalues cluster
+    there too, which is where the ARMA recursion amplifies rounding."""
+    rng = np.random.default_rng(3)
+    F = eigenvalue * np.eye(n) + 0.001 * np.triu(rng.normal(size=(n, n)), 1)
+    arrays = (F, rng.normal(size=(1, n)), 1e-4 * np.eye(n), np.eye(1))
+    return je.LinearGaussian(*(jnp.asarray(a, dtype) for a in arrays))
+
+
+@pytest.mark.parametrize("n, eigenvalue", [(3, 0.99), (4, 0.999)])
+def test_rounding_error_estimate_bounds_the_error(n, eigenvalue):
+    with enable_x64():
+        model = clustered_model(n, eigenvalue)
+        ys = simulate(model, 3000)
+        smoother = WienerSmoother.from_model(model)
+        optimal, final = smoother.optimal_start(ys, jnp.zeros(n))
+        exact = steady_state_smooth(model, ys, prior=je.Gaussian(jnp.zeros(n), jnp.eye(n))).mean
+        error = float(jnp.max(jnp.abs(smoother.smooth(ys, optimal, final) - exact)))
+        estimate = float(smoother.rounding_error(3000))
+        assert error / float(jnp.max(jnp.abs(exact))) <= estimate < 1e-3
+
+
+@pytest.mark.parametrize("n, eigenvalue, dtype", [(6, 0.999, "float64"), (3, 0.99, "float32")])
+def test_smooth_raises_where_rounding_would_leave_no_accurate_digits(n, eigenvalue, dtype):
+    # float64, n = 6: the recursion returned values 680 times the signal's size (finite, no
+    # warning); float32 at n = 3 gave 1.2 % errors
+    with enable_x64(dtype == "float64"):
+        model = clustered_model(n, eigenvalue, jnp.dtype(dtype))
+        ys = simulate(model, 3000)
+        prior = je.Gaussian(jnp.zeros(n, model.F.dtype), jnp.eye(n, dtype=model.F.dtype))
+        assert WienerSmoother.from_model(model).rounding_error(3000) > 1e-3
+        for smooth in (wiener_smooth, jax.jit(wiener_smooth)):
+            with pytest.raises(Exception, match="rounding in the ARMA recursion"):
+                jax.block_until_ready(smooth(model, ys, prior=prior))
+
+
 def test_bad_arguments_name_the_argument():
     model = paper_model()
     ys = jnp.zeros((20, 1))
