@@ -164,7 +164,7 @@ def test_steady_state_filter_matches_kalman_filter_from_sigma():
 
 def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
     """An undetectable (F, H) raises naming F and H; under jit its Sigma is NaN (the filter's
-    status then says NONFINITE). Unobservable modes outside the unit circle need no
+    and the steady-state smoother's status then say NONFINITE). Unobservable modes outside the unit circle need no
     detectability: F = 2, H = 1, Q = 0 gives Sigma = 3, where the Kalman filter converges."""
     with enable_x64(True):
         undetectable = je.LinearGaussian(
@@ -181,6 +181,8 @@ def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
             )
         )(undetectable)
         assert np.all(np.asarray(filtered.status) & je.Status.NONFINITE)
+        smoothed = steady_state_smooth_jit(undetectable, ys, je.Gaussian(jnp.zeros(2), jnp.eye(2)))
+        assert np.all(np.asarray(smoothed.status) & je.Status.NONFINITE)  # it says so too
         scalar = je.LinearGaussian(
             F=jnp.array([[2.0]]), H=jnp.array([[1.0]]), Q=jnp.zeros((1, 1)), R=jnp.eye(1)
         )

@@ -20,7 +20,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxest._priors import Gaussian
 from jaxest._run import run
@@ -108,11 +108,14 @@ def backward_gain_sum(
 
 
 class SteadyStateSmootherResult(eqx.Module):
-    """x(t|N), x(t|t) and eps(t) for t = 0..N (eq 15)."""
+    """x(t|N), x(t|t) and eps(t) for t = 0..N (eq 15), and the steady-state filter's
+    :class:`~jaxest.Status` bits per step (``NONFINITE`` where the gain has no accurate
+    solution: :func:`~jaxest.filters.steady_state.steady_state_gain` gives NaN then)."""
 
     mean: Float[Array, "T n"]
     filtered_mean: Float[Array, "T n"]
     innovation: Float[Array, "T m"]
+    status: Int[Array, " T"]
 
 
 @working_precision_by_default
@@ -134,7 +137,7 @@ def steady_state_smooth(
     gain = steady_state_gain(model) if gain is None else gain
     filtered = run(SteadyStateKalmanFilter(gain), model, ys, prior=prior)
     mean = filtered.mean + backward_gain_sum(gain, filtered.innovation)
-    return SteadyStateSmootherResult(mean, filtered.mean, filtered.innovation)
+    return SteadyStateSmootherResult(mean, filtered.mean, filtered.innovation, filtered.status)
 
 
 __all__ = [
