@@ -69,11 +69,16 @@ def add_box_of_segments(shape, segments, shape_error=None):
     ellipsoid, so the rounding of p_i costs nothing; the bound E_P of the rest follows the
     recursion P_{i+1} = (1 + p_i) P_i + (1 + 1/p_i) s_i s_i^T: E_{i+1} = (1 + p_i) E_i +
     gamma_6 ((1 + p_i) |P_i| + (1 + 1/p_i) |s_i| |s_i|^T) (six roundings per entry, the
-    symmetrisation included)."""
+    symmetrisation included). A segment of infinite or NaN length (a remainder bound over a set
+    that holds a pole) makes the sum unbounded: the shape is +inf."""
     n = shape.shape[-1]
     error = jnp.zeros_like(shape) if shape_error is None else shape_error
+    bounded = jnp.ones((), bool)
     for direction in segments:
         a = direction @ spd_solve(shape, direction)
+        # an infinite segment (a remainder bound of +inf over a set that holds a pole of f) or a
+        # NaN one leaves no bounded sum; a > 0 alone would skip it as if it were zero
+        bounded = bounded & jnp.isfinite(a)
         nonzero = a > 0
         a_ = _safe(nonzero, a)
         p = 2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_))
@@ -84,7 +89,7 @@ def add_box_of_segments(shape, segments, shape_error=None):
         )
         shape = jnp.where(nonzero, grown, shape)
         error = jnp.where(nonzero, grown_error, error)
-    return outward(shape, error)
+    return jnp.where(bounded, outward(shape, error), jnp.inf)
 
 
 @working_precision
