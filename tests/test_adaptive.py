@@ -250,8 +250,9 @@ def numpy_discrete_observer(
     DiscreteAdaptiveObserver's docstring: lambda_k = max(lambda, 1 - mu_k) (mu_k the smallest
     generalised eigenvalue of (W_k / N, S_theta^-1)) and the prior term, applied as
     S_bar = (lambda_k S_theta^-1 + (1 - lambda_k) S_0^-1)^-1 before the measurement update;
-    without, the paper's recursion. Returns x, theta and the window Gramians W_k (sums of
-    Omega^T S^-1 Omega over the last ``window`` steps)."""
+    without, the paper's recursion. NaN entries of y_k are not measured: their rows are deleted
+    from H, R and y_k. Returns x, theta and the window Gramians W_k (sums of Omega^T S^-1 Omega
+    over the last ``window`` steps)."""
     n, p = F.shape[0], theta.shape[0]
     Ups, Sp0 = np.zeros((n, p)), Sp
     xs, thetas, grams, increments = [], [], [], []
@@ -263,15 +264,17 @@ def numpy_discrete_observer(
             x_pred = F @ x + B @ u + Ph @ theta
             P_pred = F @ P @ F.T + Q
             Ups_pred = F @ Ups + Ph
-        S = H @ P_pred @ H.T + R
-        K = P_pred @ H.T @ np.linalg.inv(S)
-        P = (np.eye(n) - K @ H) @ P_pred
-        Ups = (np.eye(n) - K @ H) @ Ups_pred
-        Om = H @ Ups_pred
+        seen = ~np.isnan(y)  # a missing entry's row is deleted (the observer masks it)
+        Hs, y = H[seen], y[seen]
+        S = Hs @ P_pred @ Hs.T + R[np.ix_(seen, seen)]
+        K = P_pred @ Hs.T @ np.linalg.inv(S)
+        P = (np.eye(n) - K @ Hs) @ P_pred
+        Ups = (np.eye(n) - K @ Hs) @ Ups_pred
+        Om = Hs @ Ups_pred
         increments.append(Om.T @ np.linalg.solve(S, Om))
         W = sum(increments[-window:])
         grams.append(W)
-        e = y - H @ x_pred
+        e = y - Hs @ x_pred
         if anti_windup:
             mu = scipy.linalg.eigh(W / window, np.linalg.inv(Sp), eigvals_only=True)[0]
             lam_k = max(lam, 1 - mu)
@@ -326,6 +329,38 @@ def test_discrete_form_matches_numpy_and_converges():
         error = np.abs(np.asarray(res.theta[:, 0]) - 2.0)
         assert error[-1] < 1e-7 and error[-1] < 1e-3 * error[1000]
         assert float(jnp.linalg.norm(res.x[-1] - sim.states[-1])) < error[-1]  # x follows theta
+
+
+def test_missing_measurements_are_not_measured():
+    """NaN in y (the protocol's missing data) drops those rows: the discrete form equals a NumPy
+    recursion that deletes them, and noise-free both forms still converge, the continuous one
+    more slowly than without gaps (before, one NaN made every later estimate NaN)."""
+    with enable_x64():
+        model, obs, prior, Kbar, theta = charlie_setup()
+        sim = simulate_closed_loop(obs, model, theta, jnp.asarray(X0), prior, Kbar, multisine(8000))
+        rng = np.random.default_rng(0)
+        ys = np.asarray(sim.observations).copy()
+        ys[rng.random(ys.shape[0]) < 0.05] = np.nan  # whole samples
+        ys[rng.random(ys.shape) < 0.05] = np.nan  # single channels
+        ys[0] = np.nan
+        missing = np.isnan(ys)
+        dmodel = model.discretize(DT)
+        dobs = DiscreteAdaptiveObserver(Q=1e-4 * jnp.eye(4), R=1e-2 * jnp.eye(3), forgetting=0.99)
+        dprior = ObserverPrior(jnp.zeros(4), jnp.ones(1), jnp.eye(4), 10.0 * jnp.eye(1))
+        res = run(dobs, dmodel, jnp.asarray(ys), inputs=sim.inputs, prior=dprior)
+        Phi = np.stack([np.asarray(dmodel.phi(k, u, None)) for k, u in enumerate(sim.inputs[:400])])
+        xs, thetas, _ = numpy_discrete_observer(
+            *(np.asarray(a) for a in (dmodel.F, dmodel.B, dmodel.H)), Phi, 1e-4 * np.eye(4),
+            1e-2 * np.eye(3), 0.99, np.zeros(4), np.eye(4), np.ones(1), 10.0 * np.eye(1),
+            ys[:400], np.asarray(sim.inputs[:400]),
+        )  # fmt: skip
+        np.testing.assert_allclose(res.theta[:400], thetas, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(res.x[:400], xs, rtol=1e-9, atol=1e-12)
+        for result in (res, run(obs, model, jnp.asarray(ys), inputs=sim.inputs, prior=prior)):
+            assert np.all(np.asarray(result.status) == Status.OK)
+            assert np.all(np.asarray(result.innovation)[missing] == 0.0)
+            error = np.abs(np.asarray(result.theta[:, 0]) - float(theta[0]))
+            assert error[-1] < 1e-5 * abs(float(theta[0])) and error[-1] < 1e-2 * error[4000]
 
 
 def windup_reproduction():

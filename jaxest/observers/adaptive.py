@@ -39,6 +39,7 @@ from jaxtyping import Array, Float, Int
 from jaxest._checks import check_matrix
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status as check_finite_status
+from jaxest.filters.common import masked_measurement
 from jaxest.linalg import (
     cho_solve_lower,
     chol_inverse,
@@ -369,18 +370,25 @@ class AdaptiveObserver(AbstractEstimator):
         """Estimates at t_k, then integrate eqs 12, 17, 32 over [t_k, t_k + dt]."""
         t = self.time(k)
         _, _, C_k = model.matrices(t)
-        e = y - C_k @ state.x
+        # NaN entries of y_k are not measured: over [t_k, t_k + dt] their rows of C drop out of
+        # eqs 12, 16, 17 and 32 and their innovations are 0 (R^-1 is that of the measured ones)
+        observed = ~jnp.isnan(y)
+        e = jnp.where(observed, y - C_k @ state.x, 0.0)
+        mask = observed.astype(e.dtype)[:, None]
         level = excitation.excitation_level(state.window)
         status = check_finite_status(state.x, state.theta) | excitation.excitation_status(
             state.window, level, self.excitation_threshold
         )
         output = AdaptiveOutput(state.x, state.theta, state.Gamma, e, level, status)
         # one inverse per sample, not one solve per Runge-Kutta stage (R is small, SPD)
-        R_inv = None if self.K is not None else jnp.linalg.inv(self.R)
+        R_inv = None
+        if self.K is None:
+            R_inv = jnp.linalg.inv(masked_measurement(y, C_k @ state.x, C_k, self.R).R)
 
         def field(s, z):
             x, theta, Gamma, P, _ = z
             A, B, C = model.matrices(s)
+            C = mask * C
             psi = model.psi(s, u, y)
             K = self.gain(P, C, R_inv)
             CG = C @ Gamma
@@ -522,7 +530,10 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
     def step(self, model: DiscreteLTV, state: DiscreteState, k, y, u, key=None):
         F, B, H = model.matrices(k)
         n = F.shape[-1]
-        S_factor = cholesky(H @ state.P_pred @ H.T + self.R)
+        # NaN entries of y_k are not measured: their rows of H drop out, their innovations are 0
+        measured = masked_measurement(y, H @ state.x_pred, H, self.R)
+        H, e = measured.H, measured.innovation
+        S_factor = cholesky(H @ state.P_pred @ H.T + measured.R)
         K = cho_solve_lower(S_factor, H @ state.P_pred).T
         I_KH = jnp.eye(n, dtype=F.dtype) - K @ H
         P = symmetrize(I_KH @ state.P_pred)
@@ -540,7 +551,6 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
             info = lam * state.theta_info + (1 - lam) * chol_inverse(L0) + increment
         info = symmetrize(info)
         gain = cho_solve_lower(cholesky(info), S_inv_Omega.T)  # J^-1 Omega^T S^-1
-        e = y - H @ state.x_pred
         theta = state.theta + gain @ e
         Ups = I_KH @ state.Ups_pred
         x = state.x_pred + K @ e + Ups @ (theta - state.theta)
