@@ -72,7 +72,10 @@ class NetworkResult(AbstractResult):
 
 class NetworkFilter(AbstractEstimator):
     """Eq 9 with designed gains: ``gains`` (N, n, q) constant, or (T, N, n, q) with gains[k] used
-    on [t_k, t_k + dt] (e.g. :attr:`NetworkDesign.gains` on the sample grid)."""
+    on [t_k, t_k + dt] (e.g. :attr:`NetworkDesign.gains` on the sample grid).
+
+    No missing (NaN) measurements: the gains are designed for every node measuring at every
+    sample, and a NaN entry makes the estimate NaN from there on (``status``: NONFINITE)."""
 
     structure: CommunicationStructure
     gains: Float[Array, "*T N n q"]
