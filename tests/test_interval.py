@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.special
 
 from jaxest.setmembership import interval as iv
 from jaxest.setmembership.interval import Interval, bounding_box, hessian_interval, remainder_bound
@@ -61,6 +62,29 @@ def test_unary_rules_contain_dense_samples(name):
     # tight: for these monotone-by-piece functions the hull of dense samples nearly fills it
     width = np.asarray(out.hi - out.lo)
     assert np.all(values.max(0) - values.min(0) >= 0.95 * width - 1e-3)
+
+
+def test_composed_rules_contain_dense_samples():
+    """sinh, cosh, erfc and pow are composed of exp, log, erf (no trust in XLA's own); their
+    enclosures hold dense samples, the positive bases of pow included, and f(x) = x^2.5 cosh(x)
+    has a Hessian enclosure that holds the sampled Hessians."""
+    rng = np.random.default_rng(5)
+    x = _random_interval(rng, (300,), 3.0)
+    xs = _samples(x, rng)
+    lo, hi = np.sort(rng.uniform(0.01, 5, (2, 300)), axis=0)
+    base = Interval(jnp.asarray(lo), jnp.asarray(hi))
+    bs = _samples(base, rng)
+    cases = [(iv._rule(name)(x), fn(xs)) for name, fn in
+             (("sinh", np.sinh), ("cosh", np.cosh), ("erfc", scipy.special.erfc))]  # fmt: skip
+    cases += [(iv._rule("pow")(base, jnp.asarray(y)), bs**y) for y in (2.5, -0.5, 1 / 3)]
+    cases.append((iv._rule("pow")(jnp.asarray(2.0), x), 2.0**xs))
+    for out, values in cases:
+        assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
+    f = lambda v: jnp.stack([(2 + v[0]) ** 2.5 * jnp.cosh(v[1]), jnp.sinh(v[0] * v[1])])
+    box = Interval(jnp.asarray([0.1, -0.3]), jnp.asarray([0.4, 0.2]))
+    enclosure = iv.hessian_interval(f, box)
+    hessians = jax.vmap(jax.hessian(f))(jnp.asarray(_samples(box, rng)))
+    assert np.all(hessians >= enclosure.lo) and np.all(hessians <= enclosure.hi)
 
 
 def test_positive_domain_rules_and_poles():

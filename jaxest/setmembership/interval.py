@@ -8,7 +8,10 @@ interval that contains the exact real result of the operation on every point of 
 - sums of k terms, integer powers and dot products carry up to k roundings: the endpoints move
   outward by k * eps * |value| (:func:`_widen`) and then one more ulp;
 - library functions (exp, log, sin, tan, atan, tanh...) are not correctly rounded; XLA's are
-  accurate to a few ulps, and their endpoints move outward by ``_LIBM_ULPS`` ulps.
+  accurate to a few ulps, and their endpoints move outward by ``_LIBM_ULPS`` ulps;
+- sinh, cosh, erfc and x^y (``pow``) are composed of those rules (``_composed``).
+
+A primitive without a rule raises ``NotImplementedError`` naming it.
 
 :func:`eval_jaxpr` interprets a jaxpr over intervals (constants and literals stay exact), which
 gives :func:`hessian_interval`, an enclosure of the Hessian of any ``jax.numpy`` function over a
@@ -327,6 +330,28 @@ _unary_increasing = {
     "erf": jax.scipy.special.erf,
 }
 
+
+def _exp(x) -> Interval:
+    return _increasing(jnp.exp, lift(x))
+
+
+def _half(x: Interval) -> Interval:
+    return Interval(0.5 * x.lo, 0.5 * x.hi)  # exact in binary floating point (but underflow)
+
+
+# functions composed of the rules above, so their enclosures are guaranteed as those are (no
+# assumption on XLA's own sinh, cosh, erfc or pow): sinh = (e^x - e^-x) / 2 is exact in its
+# endpoints, as both terms increase with x; cosh = (e^|x| + e^-|x|) / 2 and erfc = 1 - erf are
+# wider than the range where the terms move apart; x^y = e^(y log x) for x > 0
+_composed = {
+    "sinh": lambda x: _half(sub(_exp(x), _exp(-lift(x)))),
+    "cosh": lambda x: _half(add(_exp(abs_(lift(x))), _exp(-abs_(lift(x))))),
+    "erfc": lambda x: sub(
+        point(jnp.ones_like(lift(x).lo)), _increasing(jax.scipy.special.erf, lift(x))
+    ),
+    "pow": lambda x, y: _exp(mul(lift(y), log(lift(x)))),
+}
+
 _structural = {
     "reshape", "broadcast_in_dim", "transpose", "squeeze", "expand_dims", "slice", "rev",
     "dynamic_slice", "gather", "reduce_max", "reduce_min", "copy", "copy_p",
@@ -350,6 +375,8 @@ def _rule(name: str) -> Callable | None:
         return simple[name]
     if name in ("eq", "ne", "lt", "le", "gt", "ge"):
         return lambda a, b: _compare(a, b, name)
+    if name in _composed:
+        return _composed[name]
     if name in _unary_increasing:
         fn = _unary_increasing[name]
         return lambda x: _increasing(fn, x)
