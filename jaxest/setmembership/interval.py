@@ -336,13 +336,13 @@ def _exp(x) -> Interval:
 
 
 def _half(x: Interval) -> Interval:
-    return Interval(0.5 * x.lo, 0.5 * x.hi)  # exact in binary floating point (but underflow)
+    return Interval(0.5 * x.lo, 0.5 * x.hi)  # exact in binary floating point, but on underflow
 
 
 # functions composed of the rules above, so their enclosures are guaranteed as those are (no
-# assumption on XLA's own sinh, cosh, erfc or pow): sinh = (e^x - e^-x) / 2 is exact in its
-# endpoints, as both terms increase with x; cosh = (e^|x| + e^-|x|) / 2 and erfc = 1 - erf are
-# wider than the range where the terms move apart; x^y = e^(y log x) for x > 0
+# assumption on XLA's own sinh, cosh, erfc or pow): sinh = (e^x - e^-x) / 2 is tight, as both
+# terms increase with x; cosh = (e^|x| + e^-|x|) / 2 bounds its two terms apart, so it can be
+# wider than cosh's range; erfc = 1 - erf; x^y = e^(y log x) for x > 0
 _composed = {
     "sinh": lambda x: _half(sub(_exp(x), _exp(-lift(x)))),
     "cosh": lambda x: _half(add(_exp(abs_(lift(x))), _exp(-abs_(lift(x))))),

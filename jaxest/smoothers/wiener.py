@@ -59,8 +59,8 @@ def lagged_sum(
 ROUNDING_TOLERANCE = 1e-3
 _INACCURATE = (
     "WienerSmoother.smooth: rounding in the ARMA recursion (eq 10) would leave x(t|N) with an "
-    "estimated relative error above 1e-3 (or NaN: the steady-state gain has no accurate "
-    "solution). It happens where Psi_f's eigenvalues cluster near the unit circle; "
+    f"estimated relative error above {ROUNDING_TOLERANCE:g} (or NaN: the steady-state gain has "
+    "no accurate solution). It happens where Psi_f's eigenvalues cluster near the unit circle; "
     "jaxest.steady_state_smooth computes the same estimate stably "
     "(WienerSmoother.rounding_error gives the estimate)."
 )
