@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxest._checks import check_matrix, is_concrete
 from jaxest._run import SaveAt, run
 
 PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
@@ -84,7 +85,9 @@ def fit(
         loss: ``model -> scalar``, e.g. :func:`neg_loglik` or :func:`supervised_mse`.
         params: attribute paths (``"Q"``, ``"R"``, ``"prior.cov"``...), as a sequence
             (Cholesky parametrisation) or a dict path -> ``"cholesky"`` / ``"log_diagonal"`` /
-            ``"unconstrained"`` (see the module docstring).
+            ``"unconstrained"`` (see the module docstring). The starting matrix must be one the
+            parametrisation represents: symmetric positive definite for ``"cholesky"``,
+            diagonal with positive entries for ``"log_diagonal"`` (``ValueError`` otherwise).
         free: optional path -> boolean mask of the unconstrained parameter's free entries
             (shape n x n for Cholesky, n for log-diagonal).
         optimizer: an optax transformation (default ``optax.adam(0.05)``); line-search
@@ -104,6 +107,7 @@ def fit(
             raise ValueError(f"params[{path!r}]: expected a constant matrix to fit")
         if kind != "unconstrained" and P.shape[0] != P.shape[1]:
             raise ValueError(f"params[{path!r}]: {kind} needs a square matrix, got {P.shape}")
+        _check_start(f"params[{path!r}]", P, kind)
     free = free or {}
     optimizer = optax.with_extra_args_support(optimizer or optax.adam(0.05))
     theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}
@@ -132,6 +136,26 @@ def fit(
 
     (theta, _), losses = jax.lax.scan(body, (theta0, opt_state0), None, num_steps)
     return FitResult(build(theta), losses)
+
+
+def _check_start(name: str, P, kind: str):
+    """The starting matrix must be one the parametrisation represents: SPD for ``"cholesky"``
+    (whose parameter is the factor of the lower triangle), diagonal with positive entries for
+    ``"log_diagonal"`` (which keeps the diagonal alone). Otherwise the fit would start from NaN
+    or from another matrix than the model's, without a word. Checked when concrete."""
+    if kind == "cholesky":
+        check_matrix(name, P, spd=True)
+    elif kind == "log_diagonal" and is_concrete(P):
+        a = np.asarray(P, np.float64)
+        if np.any(a != np.diag(np.diag(a))):
+            raise ValueError(
+                f"{name}: log_diagonal fits a diagonal matrix; the starting one has off-diagonal "
+                f"entries up to {np.max(np.abs(a - np.diag(np.diag(a)))):.3g} (use cholesky)"
+            )
+        if not np.all(np.diag(a) > 0):
+            raise ValueError(
+                f"{name}: log_diagonal needs positive diagonal entries, got {np.diag(a)}"
+            )
 
 
 def _value_and_grad(objective, opt_state):

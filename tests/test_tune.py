@@ -104,6 +104,24 @@ def test_fit_rejects_unknown_parameters():
         fit(truth, lambda m: 0.0, {"Q": "eigen"})
 
 
+@pytest.mark.parametrize(
+    "Q, kind, message",
+    [
+        ([[0.1, 0.05], [0.05, 0.1]], "log_diagonal", "off-diagonal entries up to 0.05"),
+        ([[0.1, 0.0], [0.0, 0.0]], "log_diagonal", "positive diagonal entries"),
+        ([[0.1, 0.0], [0.0, 0.0]], "cholesky", "positive definite"),
+        ([[0.1, 0.2], [0.2, 0.1]], "cholesky", "positive definite"),
+        ([[0.1, 0.05], [0.0, 0.1]], "cholesky", "symmetric"),
+    ],
+)
+def test_fit_rejects_a_start_its_parametrisation_cannot_represent(Q, kind, message):
+    # these started from NaN (singular, indefinite, zero variance) or silently from another
+    # matrix (log_diagonal dropped the off-diagonal, cholesky read the lower triangle)
+    model = je.LinearGaussian(0.9 * jnp.eye(2), jnp.eye(2)[:1], jnp.asarray(Q), jnp.eye(1))
+    with pytest.raises(ValueError, match=rf"^params\['Q'\]: .*{message}"):
+        fit(model, lambda m: 0.0, {"Q": kind})
+
+
 def test_log_variance_standard_errors_from_a_finite_difference_hessian():
     """The observed information of [log diag Q, log diag R] against central differences of the
     total negative log-likelihood (second differences, step 1e-3), on a 2-state model."""
