@@ -13,7 +13,12 @@ import jax
 import numpy as np
 
 from jaxest._priors import Gaussian
-from jaxest.models import AbstractGaussianModel, LinearGaussian, NonlinearGaussian
+from jaxest.models import (
+    AbstractGaussianModel,
+    LinearGaussian,
+    NonlinearGaussian,
+    check_inputs_used,
+)
 
 
 def is_concrete(x) -> bool:
@@ -137,6 +142,7 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     T, m_ys = np.shape(ys)
     if inputs is not None:
         check_sequence("inputs", inputs, length=T)
+    check_inputs_used(model, inputs)
     n = linear_state_dim(model, prior) if isinstance(model, LinearGaussian) else None
     n = check_gaussian_prior(prior, n)
     u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)

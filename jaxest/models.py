@@ -241,6 +241,17 @@ def gaussian_noise(key, cov):
 
 
 @working_precision_by_default
+def check_inputs_used(model, inputs):
+    """Raise ``ValueError`` where ``inputs`` are given to a linear model without B and D, which
+    would ignore them (a user who forgot B would get estimates without the inputs' effect)."""
+    linear = isinstance(model, LinearGaussian)
+    if inputs is not None and linear and model.B is None and model.D is None:
+        raise ValueError(
+            "inputs: the model has no input matrices (model.B and model.D are None), so the "
+            "inputs would be ignored; give LinearGaussian(..., B=...) or drop inputs"
+        )
+
+
 def simulate(
     model: AbstractGaussianModel,
     x0,
@@ -269,6 +280,12 @@ def simulate(
         ) from None
     if steps < 0:
         raise ValueError(f"num_steps: must not be negative, got {steps}")
+    check_inputs_used(model, inputs)
+    if isinstance(model, LinearGaussian):
+        n = model.F.shape[-1]
+        x0_shape = (x0.mean if isinstance(x0, Gaussian) else jnp.asarray(x0)).shape
+        if x0_shape != (n,):
+            raise ValueError(f"x0: expected shape ({n},) for the model's state, got {x0_shape}")
     return _simulate(model, x0, steps, key, inputs, process_noise, measurement_noise)
 
 

@@ -82,6 +82,21 @@ def test_mismatched_input_length():
         je.run(KalmanFilter(), model, ys, inputs=jnp.zeros((4, 1)), prior=prior)
 
 
+def test_inputs_to_a_linear_model_without_input_matrices_are_rejected():
+    # they were ignored without a word: the estimates came out as if there were no inputs
+    model, ys, prior = good()
+    with pytest.raises(ValueError, match=r"^inputs: the model has no input matrices"):
+        je.run(KalmanFilter(), model, ys, inputs=jnp.ones((10, 1)), prior=prior)
+    with pytest.raises(ValueError, match=r"^inputs: the model has no input matrices"):
+        je.simulate(model, prior, 10, jax.random.key(0), inputs=jnp.ones((10, 1)))
+
+
+def test_simulate_names_an_initial_state_of_the_wrong_size():
+    model, _, _ = good()  # it raised a TypeError from inside the traced scan
+    with pytest.raises(ValueError, match=r"^x0: expected shape \(2,\)"):
+        je.simulate(model, jnp.zeros(3), 5, jax.random.key(0))
+
+
 def test_nonlinear_model_shapes_checked():
     model = je.NonlinearGaussian(lambda x, u: x[:1], lambda x, u: x, jnp.eye(2), jnp.eye(2))
     with pytest.raises(ValueError, match=r"f\(x\)"):
