@@ -240,7 +240,6 @@ def gaussian_noise(key, cov):
     return chol @ jax.random.normal(key, cov.shape[:1], dtype=cov.dtype)
 
 
-@working_precision_by_default
 def check_inputs_used(model, inputs):
     """Raise ``ValueError`` where ``inputs`` are given to a linear model without B and D, which
     would ignore them (a user who forgot B would get estimates without the inputs' effect)."""
@@ -252,6 +251,7 @@ def check_inputs_used(model, inputs):
         )
 
 
+@working_precision_by_default
 def simulate(
     model: AbstractGaussianModel,
     x0,
