@@ -147,14 +147,16 @@ def _check_start(name: str, P, kind: str):
         check_matrix(name, P, spd=True)
     elif kind == "log_diagonal" and is_concrete(P):
         a = np.asarray(P, np.float64)
-        if np.any(a != np.diag(np.diag(a))):
+        diagonal = np.diag(a)
+        off_diagonal = np.abs(a - np.diag(diagonal))
+        if np.any(off_diagonal):
             raise ValueError(
                 f"{name}: log_diagonal fits a diagonal matrix; the starting one has off-diagonal "
-                f"entries up to {np.max(np.abs(a - np.diag(np.diag(a)))):.3g} (use cholesky)"
+                f"entries up to {np.max(off_diagonal):.3g} (use cholesky)"
             )
-        if not np.all(np.diag(a) > 0):
+        if not np.all(diagonal > 0):
             raise ValueError(
-                f"{name}: log_diagonal needs positive diagonal entries, got {np.diag(a)}"
+                f"{name}: log_diagonal needs positive diagonal entries, got {diagonal}"
             )
 
 
