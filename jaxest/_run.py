@@ -73,7 +73,8 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
         outputs, saved, status = keep(outputs)
         any_status = jax.lax.reduce(status, jnp.int32(0), jax.lax.bitwise_or, (0,))
     else:
-        keys = None if key is None else jax.random.split(key, T)
+        # one key per step index, so a run resumed at k0 draws what one run would have drawn
+        keys = None if key is None else jax.vmap(jax.random.fold_in, (None, 0))(key, ks)
         first = estimator.init(model, prior) if state is None else state
 
         def body(carry, args):
@@ -126,7 +127,9 @@ def run(
         prior: what ``estimator.init`` takes (a :class:`~jaxest.Gaussian` for the Gaussian
             filters), the belief about the state at the first measurement.
         inputs: known inputs u_k with leading axis T, or ``None``.
-        key: PRNG key, split into one key per step for estimators that sample.
+        key: PRNG key for estimators that sample; step k draws with ``fold_in(key, k)``, so
+            a run resumed with the same key (``state=``, ``k0=``) continues the draws of one
+            run instead of repeating the first chunk's.
         state: resume from this state (e.g. ``result.final_state``) instead of ``prior``;
             ``k0`` is then the index of the first of ``ys`` (the number of steps already done).
         save: what to keep of each step (:class:`SaveAt`; default: the estimator's fields).

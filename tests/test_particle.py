@@ -319,3 +319,8 @@ def test_particles_are_saved_on_request_and_resume():
     np.testing.assert_allclose(jax.nn.logsumexp(r.log_weights, axis=1), 0.0, atol=1e-12)
     assert r.mean is None
     np.testing.assert_allclose(r.loglik, jnp.sum(r.loglik_terms), rtol=1e-12)
+    head = je.run(je.ParticleFilter(16), model, ys[:5], prior=PRIOR, key=key, save=save)
+    tail = je.run(je.ParticleFilter(16), model, ys[5:], state=head.final_state, k0=5, key=key,
+                  save=save)  # fmt: skip
+    np.testing.assert_allclose(tail.particles, r.particles[5:], rtol=1e-12)
+    np.testing.assert_allclose(tail.loglik, r.loglik, rtol=1e-12)

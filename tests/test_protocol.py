@@ -224,6 +224,15 @@ def test_driver_splits_the_key_per_step():
     assert abs(np.corrcoef(jitter[:-1, 0], jitter[1:, 0])[0, 1]) < 0.3  # fresh draws each step
 
 
+def test_a_resumed_run_continues_the_draws_of_one_run():
+    model, ys = linear_problem()
+    key = jax.random.key(0)
+    whole = je.run(NoisyTracker(), model, ys, prior=PRIOR, key=key)
+    first = je.run(NoisyTracker(), model, ys[:25], prior=PRIOR, key=key)
+    rest = je.run(NoisyTracker(), model, ys[25:], state=first.final_state, k0=25, key=key)
+    np.testing.assert_allclose(rest.mean, whole.mean[25:], rtol=1e-12, atol=1e-12)
+
+
 def test_throw_raises_with_advice():
     model, ys = linear_problem()
     bad = je.LinearGaussian(model.F, model.H, model.Q, jnp.asarray([[jnp.nan]]), G=model.G)
