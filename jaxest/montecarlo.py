@@ -18,6 +18,7 @@ run function with several independent small-matrix factorisations hangs, lower `
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -27,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxest._checks import check_positive_int
+from jaxest._checks import check_positive_int, is_concrete
 
 RUNS_AXIS = "runs"
 
@@ -61,6 +62,10 @@ def monte_carlo(
             (every device when there are several).
 
     Returns the outputs with a leading axis of length N (on every host).
+
+    On one process it runs inside ``jit``, ``vmap`` and ``grad`` too (e.g. a jitted gradient
+    step of a study's mean loss); across processes it gathers the outputs on the hosts, so it is
+    called outside ``jit`` with a concrete key.
     """
     check_positive_int("num_runs", num_runs)
     if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
@@ -72,24 +77,36 @@ def monte_carlo(
     chunk = per_device * num_devices
     num_chunks = math.ceil(num_runs / chunk)
 
-    keys = jax.random.split(key, num_runs)
-    padded = np.asarray(jax.random.key_data(keys) if _is_typed(keys) else keys)
-    padded = np.concatenate([padded, np.repeat(padded[-1:], num_chunks * chunk - num_runs, 0)])
-    padded = padded.reshape(num_chunks, chunk, *padded.shape[1:])
+    across_processes = mesh is not None and jax.process_count() > 1
+    if across_processes and not is_concrete(key):
+        raise ValueError(
+            "key: monte_carlo across processes gathers the results on every host, outside jit; "
+            "call it with a concrete key, outside jit and vmap"
+        )
 
-    typed = _is_typed(keys)
-    if mesh is None:
-        out = _all_chunks(run_fn, jnp.asarray(padded), typed)
-    else:
-        axis = mesh.axis_names[0]
-        sharding = NamedSharding(mesh, PartitionSpec(None, axis))
-        raw = jax.make_array_from_callback(padded.shape, sharding, lambda index: padded[index])
-        out = _all_chunks(run_fn, raw, typed)
-        if jax.process_count() > 1:
-            from jax.experimental import multihost_utils
+    padded = _chunked_key_data(jax.random.split(key, num_runs), num_chunks, chunk)
+    if mesh is not None:
+        sharding = NamedSharding(mesh, PartitionSpec(None, mesh.axis_names[0]))
+        if is_concrete(padded):
+            host = np.asarray(padded)
+            padded = jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
+        else:
+            padded = jax.lax.with_sharding_constraint(padded, sharding)
+    out = _all_chunks(run_fn, padded, _is_typed(key))
+    if across_processes:
+        from jax.experimental import multihost_utils
 
-            out = multihost_utils.process_allgather(out, tiled=True)
+        out = multihost_utils.process_allgather(out, tiled=True)
     return jax.tree.map(lambda a: a.reshape(num_chunks * chunk, *a.shape[2:])[:num_runs], out)
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _chunked_key_data(keys, num_chunks: int, chunk: int):
+    """The keys' raw data, padded with copies of the last key to num_chunks * chunk runs and
+    shaped (num_chunks, chunk, ...)."""
+    raw = jax.random.key_data(keys) if _is_typed(keys) else keys
+    raw = jnp.concatenate([raw, jnp.repeat(raw[-1:], num_chunks * chunk - raw.shape[0], 0)])
+    return raw.reshape(num_chunks, chunk, *raw.shape[1:])
 
 
 @eqx.filter_jit

@@ -49,6 +49,14 @@ WORKER = (
         return {"loglik": post.loglik, "final_error": post.mean[-1] - sim.states[-1]}
 
     res = je.monte_carlo(one_run, jax.random.PRNGKey(7), NUM_RUNS, chunk_size=CHUNK)
+    if num_processes > 1:  # gathering on the hosts cannot happen inside jit: a clear error
+        study = lambda key: je.monte_carlo(one_run, key, NUM_RUNS, chunk_size=CHUNK)
+        try:
+            jax.jit(study)(jax.random.PRNGKey(7))
+        except ValueError as error:
+            assert str(error).startswith("key:"), error
+        else:
+            raise AssertionError("monte_carlo across processes ran inside jit")
     np.savez(f"{out}_{process_id}.npz", **{k: np.asarray(v) for k, v in res.items()})
     """
     )
