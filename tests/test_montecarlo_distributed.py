@@ -45,7 +45,7 @@ WORKER = (
 
     def one_run(key):
         sim = je.simulate(model, prior, 50, key)
-        post = je.filter(je.KalmanFilter(), model, sim.y, init=prior)
+        post = je.run(je.KalmanFilter(), model, sim.y, prior=prior)
         return {"loglik": post.loglik, "final_error": post.mean[-1] - sim.states[-1]}
 
     res = je.monte_carlo(one_run, jax.random.PRNGKey(7), NUM_RUNS, chunk_size=CHUNK)
