@@ -20,8 +20,9 @@ The eigen/SVD factorisation P = U diag(D)^2 U^T is not unique when eigenvalues r
 isotropic Q), and ``jnp.linalg.svd``'s derivative divides by differences of singular values, so it
 is NaN there. Estimators whose outputs depend on P only through U D^2 U^T are differentiated at the
 covariance level instead: :func:`factor_psd` and :func:`cov_tangent_to_factor` choose, for a
-covariance tangent dP, the factor tangent dU = 1/2 dP U D^-2, dD = 0, which reproduces dP exactly
-(dU D^2 U^T + U D^2 dU^T = dP) and is finite whatever the multiplicities (docs/papers/svd_ekf.md).
+covariance tangent dP, the factor tangent dU = 1/2 dP U^-T D^-2, dD = 0, which reproduces dP exactly
+(dU D^2 U^T + U D^2 dU^T = dP), at every order of differentiation, and is finite whatever the
+multiplicities (docs/papers/svd_ekf.md, "Gradients through an SVD").
 """
 
 from __future__ import annotations
@@ -79,8 +80,29 @@ def factor_tangent_to_cov(U, D, dU, dD):
 
 
 def cov_tangent_to_factor(U, D, dP):
-    """A factor tangent (dU, dD) whose covariance tangent is ``dP`` (see module docstring)."""
-    return 0.5 * dP @ (U / D**2), jnp.zeros_like(D)
+    """A factor tangent (dU, dD) = (dP U^-T D^-2 / 2, 0) whose covariance tangent is ``dP``
+    (``factor_tangent_to_cov``), defined where D has repeated entries, where the SVD's own
+    tangent is not (see module docstring).
+
+    U^-T is U for the orthogonal factors given here, but it is differentiated as an inverse
+    (:func:`_orthogonal_inverse_transpose`): then dU D^2 U^T = dP / 2 holds for every U, not only
+    an orthogonal one, so factors moved along these tangents keep U D^2 U^T = P to every order,
+    and second derivatives through the SVD filters equal the covariance filters'. (With U in
+    place of U^-T their forward-over-forward Hessians were wrong.)"""
+    return 0.5 * dP @ (_orthogonal_inverse_transpose(U) / D**2), jnp.zeros_like(D)
+
+
+@jax.custom_jvp
+def _orthogonal_inverse_transpose(U):
+    """U^-T of an orthogonal U (U itself), with the inverse's tangent -U^-T dU^T U^-T."""
+    return U
+
+
+@_orthogonal_inverse_transpose.defjvp
+def _orthogonal_inverse_transpose_jvp(primals, tangents):
+    (U,), (dU,) = primals, tangents
+    inverse_transpose = _orthogonal_inverse_transpose(U)
+    return inverse_transpose, -inverse_transpose @ dU.T @ inverse_transpose
 
 
 #: the name (``jax.ad_checkpoint.checkpoint_name``) of the SVD and eigen factors that the

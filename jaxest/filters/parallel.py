@@ -267,6 +267,8 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
     :class:`~jaxest.FilterResult` whose ``final_state`` is the :class:`~jaxest.GaussianState`
     x(T|T-1), P(T|T-1), log p(y_0..y_{T-1}), so ``rts_smooth``, ``monte_carlo``, ``fit`` and
     resuming (``run(..., state=result.final_state)``, sequentially) work as for the others.
+    Second derivatives (``jax.hessian``) need ``square_root=False``: the square-root form's
+    are NaN (docs/robustness.md, "Second derivatives").
     """
 
     square_root: bool = eqx.field(static=True, default=True)
