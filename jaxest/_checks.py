@@ -18,6 +18,7 @@ from jaxest.models import (
     LinearGaussian,
     NonlinearGaussian,
     check_inputs_used,
+    check_time_axes,
 )
 
 
@@ -119,13 +120,6 @@ def check_gaussian_prior(prior, n: int | None = None) -> int:
         raise ValueError(f"prior.cov: expected shape ({size}, {size}), got {np.shape(prior.cov)}")
     check_matrix("prior.cov", prior.cov, (size, size), spd=True)
     return size
-
-
-def _time_length(name, arr, T):
-    if arr is not None and np.ndim(arr) == 3 and np.shape(arr)[0] < T:
-        raise ValueError(
-            f"{name}: time-varying with {np.shape(arr)[0]} steps, fewer than the {T} measurements"
-        )
 
 
 def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = False):
@@ -242,9 +236,7 @@ def check_noise_values(model, x, u, T, m, q, positive_Q):
     if isinstance(model, LinearGaussian | NonlinearGaussian):
         check_matrix("model.R", model.R, (m, m), spd=True)
         check_matrix("model.Q", model.Q, (q, q), psd=not positive_Q, spd=positive_Q)
-        names = ("F", "H", "Q", "R", "G", "B", "D") if isinstance(model, LinearGaussian) else "QR"
-        for name in names:
-            _time_length(f"model.{name}", getattr(model, name), T)
+        check_time_axes(model, 0, T)
         return
     if not all(is_concrete(a) for a in jax.tree.leaves((model, x, u))):
         return

@@ -17,7 +17,9 @@ from typing import Any
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from jaxest._checks import is_concrete
 from jaxest._estimator import (
     AbstractAssociativeEstimator,
     AbstractEstimator,
@@ -25,6 +27,7 @@ from jaxest._estimator import (
     associative_outputs,
 )
 from jaxest.linalg import working_precision_by_default
+from jaxest.models import check_time_axes
 
 
 class SaveAt(eqx.Module):
@@ -131,7 +134,8 @@ def run(
             a run resumed with the same key (``state=``, ``k0=``) continues the draws of one
             run instead of repeating the first chunk's.
         state: resume from this state (e.g. ``result.final_state``) instead of ``prior``;
-            ``k0`` is then the index of the first of ``ys`` (the number of steps already done).
+            ``k0`` is then the index of the first of ``ys`` (the number of steps already done);
+            a time-varying model keeps its whole time axis, read at the absolute step k.
         save: what to keep of each step (:class:`SaveAt`; default: the estimator's fields).
         parallel: :func:`jaxest.scan.associative_scan` (O(log T) depth) instead of ``lax.scan``; only for
             associative estimators, the default for them.
@@ -181,6 +185,13 @@ def run(
         raise ValueError(f"key: {type(estimator).__name__} samples; pass key=jax.random.key(...)")
     if state is None:
         estimator.check(model, ys, inputs, prior)
+    if is_concrete(k0):  # also when resuming, which skips the estimator's checks
+        index = np.asarray(k0)
+        if index.dtype.kind not in "iu" or index.ndim != 0 or index < 0:
+            raise ValueError(
+                f"k0: expected a non-negative integer (the index of ys[0]), got {k0!r}"
+            )
+        check_time_axes(model, int(k0), np.shape(ys)[0])
     result = _run(
         estimator, model, jnp.asarray(ys), inputs, prior, state, k0, key,
         save or SaveAt(), parallel, checkpoint,

@@ -251,6 +251,31 @@ def check_inputs_used(model, inputs):
         )
 
 
+def check_time_axes(model, first: int, count: int) -> None:
+    """Raise ``ValueError`` where a time-varying matrix of a built-in model (a leading time axis,
+    :func:`at_time`) does not cover the steps ``first`` .. ``first + count - 1`` that a run or a
+    simulation reads: JAX clamps an index past the end, so those steps would silently reuse the
+    last matrix."""
+    if isinstance(model, LinearGaussian):
+        names = ("F", "H", "Q", "R", "G", "B", "D")
+    elif isinstance(model, NonlinearGaussian):
+        names = ("Q", "R")
+    else:
+        return
+    for name in names:
+        matrix = getattr(model, name)
+        if matrix is None or jnp.ndim(matrix) != 3 or jnp.shape(matrix)[0] >= first + count:
+            continue
+        steps = (
+            f"the {count} measurements"
+            if first == 0
+            else f"steps {first}..{first + count - 1} (k0 = {first}, {count} measurements)"
+        )
+        raise ValueError(
+            f"model.{name}: time-varying with {jnp.shape(matrix)[0]} steps, fewer than {steps}"
+        )
+
+
 @working_precision_by_default
 def simulate(
     model: AbstractGaussianModel,
@@ -281,6 +306,9 @@ def simulate(
     if steps < 0:
         raise ValueError(f"num_steps: must not be negative, got {steps}")
     check_inputs_used(model, inputs)
+    check_time_axes(model, 0, steps)
+    if inputs is not None and any(jnp.shape(a)[:1] != (steps,) for a in jax.tree.leaves(inputs)):
+        raise ValueError(f"inputs: expected a leading time axis of num_steps = {steps}")
     if isinstance(model, LinearGaussian):
         n = model.F.shape[-1]
         x0_shape = (x0.mean if isinstance(x0, Gaussian) else jnp.asarray(x0)).shape

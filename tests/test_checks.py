@@ -97,6 +97,30 @@ def test_simulate_names_an_initial_state_of_the_wrong_size():
         je.simulate(model, jnp.zeros(3), 5, jax.random.key(0))
 
 
+def test_time_varying_matrices_must_cover_the_steps_a_run_reads():
+    """F[k] past the end of F's time axis reads the last F (JAX clamps indices): a resumed run
+    (whose estimator checks are skipped), a model sliced to the remaining steps and a longer
+    simulation ran without a word."""
+    model, ys, prior = good()
+    varying = je.LinearGaussian(jnp.stack([0.9 * jnp.eye(2)] * 10), model.H, model.Q, model.R)
+    head = je.run(KalmanFilter(), varying, ys[:5], prior=prior)
+    resume = lambda m, y, k0: je.run(KalmanFilter(), m, y, state=head.final_state, k0=k0)
+    assert resume(varying, ys[5:], 5).mean.shape == (5, 2)
+    with pytest.raises(ValueError, match=r"^model.F: .* fewer than steps 5..14 \(k0 = 5"):
+        resume(varying, ys, 5)
+    sliced = je.LinearGaussian(varying.F[5:], model.H, model.Q, model.R)
+    with pytest.raises(ValueError, match=r"^model.F: time-varying with 5 steps"):
+        resume(sliced, ys[5:], 5)
+    for bad in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="^k0"):
+            resume(varying, ys[5:], bad)
+    with pytest.raises(ValueError, match=r"^model.F: time-varying with 10 steps"):
+        je.simulate(varying, prior, 12, jax.random.key(0))
+    with_inputs = je.LinearGaussian(model.F, model.H, model.Q, model.R, B=jnp.ones((2, 1)))
+    with pytest.raises(ValueError, match="^inputs"):  # was scan's "different leading axis sizes"
+        je.simulate(with_inputs, prior, 12, jax.random.key(0), inputs=jnp.ones((10, 1)))
+
+
 def test_nonlinear_model_shapes_checked():
     model = je.NonlinearGaussian(lambda x, u: x[:1], lambda x, u: x, jnp.eye(2), jnp.eye(2))
     with pytest.raises(ValueError, match=r"f\(x\)"):
