@@ -9,7 +9,9 @@ An estimator is an ``eqx.Module`` (its hyperparameters are fields) with
   the driver owns time and randomness, states hold neither;
 - ``result(outputs, final_state) -> result``: packs the stacked outputs (those the caller chose
   to save, the others ``None``) into the estimator's result Module;
-- ``check(model, ys, inputs, prior)``: argument checks run before anything is traced.
+- ``check(model, ys, inputs, prior)``: argument checks run before anything is traced;
+- ``check_steps(model, first, count)``: that the arrays read at the step index (time-varying
+  matrices) cover the steps of a run, resumed runs included (``check`` is skipped there).
 
 Each step's ``output`` has an integer ``status`` field (bits of a :class:`~jaxest.StatusFlag`).
 :func:`jaxest.run` drives any estimator over a sequence; users with their own loop (closed-loop
@@ -33,6 +35,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Int
 
 from jaxest._status import Status, StatusFlag
+from jaxest.models import check_time_axes
 from jaxest.scan import associative_scan
 
 
@@ -88,6 +91,13 @@ class AbstractEstimator(eqx.Module):
 
     def check(self, model, ys, inputs, prior) -> None:
         """Raise ``ValueError`` naming the argument for malformed arguments (default: none)."""
+
+    def check_steps(self, model, first: int, count: int) -> None:
+        """Raise ``ValueError`` where an array read at the time index (a time-varying matrix of
+        the model or of the estimator) does not cover the steps ``first`` .. ``first + count -
+        1`` of a run, which :func:`jaxest.run` checks on every call, resumed runs included
+        (default: the built-in Gaussian models' matrices, :func:`jaxest.models.check_time_axes`)."""
+        check_time_axes(model, first, count)
 
     def derivative_fields(self, model) -> tuple[str, ...]:
         """The output fields :meth:`with_derivatives` needs of a run on ``model`` from a prior:

@@ -27,7 +27,6 @@ from jaxest._estimator import (
     associative_outputs,
 )
 from jaxest.linalg import working_precision_by_default
-from jaxest.models import check_time_axes
 
 
 class SaveAt(eqx.Module):
@@ -191,7 +190,7 @@ def run(
             raise ValueError(
                 f"k0: expected a non-negative integer (the index of ys[0]), got {k0!r}"
             )
-        check_time_axes(model, int(k0), np.shape(ys)[0])
+        estimator.check_steps(model, int(k0), np.shape(ys)[0])
     result = _run(
         estimator, model, jnp.asarray(ys), inputs, prior, state, k0, key,
         save or SaveAt(), parallel, checkpoint,

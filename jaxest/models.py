@@ -251,11 +251,23 @@ def check_inputs_used(model, inputs):
         )
 
 
+def check_time_axis(name: str, matrix, first: int, count: int, ndim: int = 2) -> None:
+    """Raise ``ValueError`` where ``matrix``, if it carries a leading time axis (ndim + 1 dims,
+    read by :func:`at_time`), does not cover the steps ``first`` .. ``first + count - 1`` that a
+    run or a simulation reads: JAX clamps an index past the end, so those steps would silently
+    reuse the last matrix."""
+    if callable(matrix) or jnp.ndim(matrix) != ndim + 1 or jnp.shape(matrix)[0] >= first + count:
+        return
+    steps = (
+        f"the {count} measurements"
+        if first == 0
+        else f"steps {first}..{first + count - 1} (k0 = {first}, {count} measurements)"
+    )
+    raise ValueError(f"{name}: time-varying with {jnp.shape(matrix)[0]} steps, fewer than {steps}")
+
+
 def check_time_axes(model, first: int, count: int) -> None:
-    """Raise ``ValueError`` where a time-varying matrix of a built-in model (a leading time axis,
-    :func:`at_time`) does not cover the steps ``first`` .. ``first + count - 1`` that a run or a
-    simulation reads: JAX clamps an index past the end, so those steps would silently reuse the
-    last matrix."""
+    """:func:`check_time_axis` for the matrices of a built-in model."""
     if isinstance(model, LinearGaussian):
         names = ("F", "H", "Q", "R", "G", "B", "D")
     elif isinstance(model, NonlinearGaussian):
@@ -263,17 +275,8 @@ def check_time_axes(model, first: int, count: int) -> None:
     else:
         return
     for name in names:
-        matrix = getattr(model, name)
-        if matrix is None or jnp.ndim(matrix) != 3 or jnp.shape(matrix)[0] >= first + count:
-            continue
-        steps = (
-            f"the {count} measurements"
-            if first == 0
-            else f"steps {first}..{first + count - 1} (k0 = {first}, {count} measurements)"
-        )
-        raise ValueError(
-            f"model.{name}: time-varying with {jnp.shape(matrix)[0]} steps, fewer than {steps}"
-        )
+        if getattr(model, name) is not None:
+            check_time_axis(f"model.{name}", getattr(model, name), first, count)
 
 
 @working_precision_by_default

@@ -446,6 +446,10 @@ def test_discrete_model_takes_matrices_stacked_over_time():
         np.testing.assert_allclose(stacked.theta, called.theta, rtol=1e-12, atol=1e-14)
         with pytest.raises(ValueError, match="^steps:"):
             model.discretize(dt)
+        # past the stacked steps F[k] would be F[T-1] (clamped indexing): the run says so
+        longer = lambda a: jnp.concatenate([a, a[:5]])
+        with pytest.raises(ValueError, match=r"^model.F: time-varying with 60 steps"):
+            run(obs, sampled, longer(ys), inputs=longer(us), prior=prior)
 
 
 def _loss(obs, model, prior, Kbar, theta, r):

@@ -27,7 +27,7 @@ from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._priors import Gaussian
 from jaxest._status import finite_status
 from jaxest.linalg import working_precision_by_default
-from jaxest.models import at_time
+from jaxest.models import at_time, check_time_axis
 from jaxest.network.structure import (
     CommunicationStructure,
     LargeScaleSystem,
@@ -99,6 +99,9 @@ class NetworkFilter(AbstractEstimator):
             raise ValueError(f"prior.mean: expected shape ({N}, n), got {np.shape(prior.mean)}")
         if np.ndim(ys) != 3 or np.shape(ys)[1] != N:
             raise ValueError(f"ys: expected shape (T, {N}, q), got {np.shape(ys)}")
+
+    def check_steps(self, model, first: int, count: int) -> None:
+        check_time_axis("gains", self.gains, first, count, ndim=3)
 
     def step(self, model: LargeScaleSystem, state: NetworkState, k, y_k, u_k=None, key=None):
         t = self.t0 + k * self.dt

@@ -48,7 +48,7 @@ from jaxest.linalg import (
     symmetrize,
     working_precision_by_default,
 )
-from jaxest.models import at_time
+from jaxest.models import at_time, check_time_axis
 from jaxest.observers import excitation
 from jaxest.observers.excitation import ObserverStatus as Status
 
@@ -486,6 +486,13 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
         check_matrix("R", self.R, spd=True)
         if not 0 < self.forgetting <= 1:
             raise ValueError(f"forgetting: must be in (0, 1], got {self.forgetting}")
+
+    def check_steps(self, model, first: int, count: int) -> None:
+        if isinstance(model, DiscreteLTV):
+            for name in ("F", "B", "H"):
+                check_time_axis(f"model.{name}", getattr(model, name), first, count)
+            if isinstance(model.phi, HeldRegressor):
+                check_time_axis("model.phi.E", model.phi.E, first, count)
 
     def init(self, model: DiscreteLTV, prior: ObserverPrior) -> DiscreteState:
         if not isinstance(prior, ObserverPrior) or prior.P is None or prior.theta_cov is None:
