@@ -43,6 +43,12 @@ SCRIPT = textwrap.dedent(
         assert np.all(np.asarray(sharded.status) == 0) and sharded.status.shape == (T,)
         # estimates differ between structures: the communication is really used
         print(name, float(jnp.abs(sharded.final_mean).sum()))
+    try:  # a gain schedule shorter than ys: gains[k] past its end would be the last one
+        run_sharded(filt, system, jnp.concatenate([ys, ys[:2]]), Gaussian(mean0, cov0))
+    except ValueError as error:
+        assert str(error).startswith("gains: time-varying"), error
+    else:
+        raise AssertionError("run_sharded ran past the gain schedule")
     print("SHARDED-OK")
     """
 )

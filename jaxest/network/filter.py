@@ -148,6 +148,8 @@ def run_sharded(
     chain structure exchanges with the two neighbouring devices only). Gives the same estimates
     as :func:`jaxest.run` on one device (up to rounding). The structure must be concrete.
     """
+    filt.check(system, ys, None, prior)
+    filt.check_steps(system, 0, np.shape(ys)[0])
     N = system.num_nodes
     devices = list(jax.devices()[:N]) if devices is None else list(devices)
     if len(devices) != N:
