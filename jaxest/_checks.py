@@ -10,6 +10,7 @@ built-in ones.
 from __future__ import annotations
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from jaxest._priors import Gaussian
@@ -122,6 +123,12 @@ def check_gaussian_prior(prior, n: int | None = None) -> int:
     return size
 
 
+def first_input(inputs):
+    """u_0 of a leading-time-axis array, or zeros of its shape when there are no steps (T = 0),
+    for the checks' evaluation of the model."""
+    return inputs[0] if inputs.shape[0] else jnp.zeros(inputs.shape[1:], inputs.dtype)
+
+
 def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = False):
     """All checks of a Gaussian filter's arguments (:func:`jaxest.run`).
 
@@ -139,7 +146,7 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     check_inputs_used(model, inputs)
     n = linear_state_dim(model, prior) if isinstance(model, LinearGaussian) else None
     n = check_gaussian_prior(prior, n)
-    u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
+    u0 = None if inputs is None else jax.tree.map(first_input, inputs)
     shapes = model_shapes(model, prior.mean, u0)
     m = shapes["h(x)"][0]
     check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")  # blame ys

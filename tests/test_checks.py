@@ -121,6 +121,31 @@ def test_time_varying_matrices_must_cover_the_steps_a_run_reads():
         je.simulate(with_inputs, prior, 12, jax.random.key(0), inputs=jnp.ones((10, 1)))
 
 
+def test_smoothers_name_bad_arguments():
+    """A particle filter's result raised an AttributeError, a model of another size a TypeError
+    from inside the pass, inputs to a model without B were ignored, an empty result an
+    IndexError (and so did run with T = 0 and inputs)."""
+    model, ys, prior = good()
+    result = je.run(KalmanFilter(), model, ys, prior=prior)
+    particles = je.run(je.ParticleFilter(8), model, ys, prior=prior, key=jax.random.key(0))
+    three = je.LinearGaussian(jnp.eye(3), jnp.ones((1, 3)), jnp.eye(3), jnp.eye(1))
+    with_b = je.LinearGaussian(model.F, model.H, model.Q, model.R, B=jnp.ones((2, 1)))
+    empty = je.run(KalmanFilter(), with_b, ys[:0], prior=prior, inputs=jnp.ones((0, 1)))
+    for smooth in (
+        je.rts_smooth,
+        lambda m, r, **kw: je.sigma_point_rts_smooth(m, r, je.UKF(), **kw),
+    ):
+        for args, kwargs, name in [
+            ((model, particles), {}, "result"),
+            ((three, result), {}, "model"),
+            ((model, result), {"inputs": jnp.ones((10, 1))}, "inputs"),
+            ((with_b, result), {"inputs": jnp.ones((7, 1))}, "inputs"),
+            ((with_b, empty), {"inputs": jnp.ones((0, 1))}, "result"),
+        ]:
+            with pytest.raises(ValueError, match=f"^{name}"):
+                smooth(*args, **kwargs)
+
+
 def test_nonlinear_model_shapes_checked():
     model = je.NonlinearGaussian(lambda x, u: x[:1], lambda x, u: x, jnp.eye(2), jnp.eye(2))
     with pytest.raises(ValueError, match=r"f\(x\)"):

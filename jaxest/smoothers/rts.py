@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
+from jaxest._checks import check_sequence, model_shapes
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.linalg import (
@@ -26,6 +27,7 @@ from jaxest.linalg import (
     symmetrize,
     working_precision_by_default,
 )
+from jaxest.models import check_inputs_used
 
 
 class SmootherResult(eqx.Module):
@@ -49,6 +51,42 @@ class SmootherResult(eqx.Module):
 NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
 
 
+def check_smoother_arguments(smoother: str, model, result, inputs) -> None:
+    """``result`` is a Gaussian filter's result holding the fields the smoothers read, of a
+    state the size ``model`` propagates, and ``inputs`` fit both (``ValueError`` naming the
+    argument: a particle filter's result raised an ``AttributeError``, a model of another
+    size a ``TypeError`` from inside the pass, and inputs to a model without B were ignored)."""
+    if not isinstance(result, FilterResult):
+        raise ValueError(
+            f"result: {smoother} smooths the FilterResult of a Gaussian filter, got "
+            f"{type(result).__name__}"
+        )
+    missing = [name for name in NEEDED if getattr(result, name) is None]
+    if missing:
+        raise ValueError(f"result: {smoother} needs {missing}, which were not saved")
+    T, n = result.mean.shape[-2:]
+    if T == 0:
+        raise ValueError(f"result: has no steps (T = 0), nothing for {smoother} to smooth")
+    if inputs is not None:
+        check_sequence("inputs", inputs, length=T)
+    check_inputs_used(model, inputs)
+    x = jax.ShapeDtypeStruct((n,), result.mean.dtype)
+    u = (
+        None
+        if inputs is None
+        else jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), inputs)
+    )
+    try:
+        f_shape = model_shapes(model, x, u)["f(x)"]
+    except ValueError as err:
+        raise ValueError(
+            f"model: cannot be evaluated at the result's states, of shape ({n},) "
+            f"({type(err.__cause__).__name__}: {err.__cause__})"
+        ) from err
+    if f_shape != (n,):
+        raise ValueError(f"model: propagates a state of shape {f_shape}, the result's has ({n},)")
+
+
 @working_precision_by_default
 def rts_smooth(
     model, result: FilterResult, *, inputs=None, parallel: bool = False
@@ -60,9 +98,7 @@ def rts_smooth(
     ``parallel=True``: the same smoother as a reverse associative scan, O(log T) depth
     (:mod:`jaxest.smoothers.parallel`).
     """
-    missing = [name for name in NEEDED if getattr(result, name) is None]
-    if missing:
-        raise ValueError(f"result: rts_smooth needs {missing}, which were not saved")
+    check_smoother_arguments("rts_smooth", model, result, inputs)
     if parallel:
         from jaxest.smoothers.parallel import parallel_rts_smooth
 

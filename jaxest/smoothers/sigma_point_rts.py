@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from jaxest.filters.base import FilterResult
 from jaxest.filters.sigma_point import AbstractSigmaPointFilter
 from jaxest.linalg import working_precision_by_default
-from jaxest.smoothers.rts import NEEDED, SmootherResult, backward_pass
+from jaxest.smoothers.rts import SmootherResult, backward_pass, check_smoother_arguments
 
 
 @working_precision_by_default
@@ -39,9 +39,7 @@ def sigma_point_rts_smooth(
             f"filter: expected a sigma-point filter (UKF, CubatureKF, GaussHermiteKF), "
             f"got {type(filter).__name__}; use jaxest.rts_smooth for the others"
         )
-    missing = [name for name in NEEDED if getattr(result, name) is None]
-    if missing:
-        raise ValueError(f"result: sigma_point_rts_smooth needs {missing}, which were not saved")
+    check_smoother_arguments("sigma_point_rts_smooth", model, result, inputs)
     return _smooth(model, result, filter, inputs)
 
 
