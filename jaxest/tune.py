@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxest._checks import check_matrix, is_concrete
+from jaxest._checks import check_matrix, check_positive_int, is_concrete
 from jaxest._run import SaveAt, run
 
 PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
@@ -108,9 +108,19 @@ def fit(
         if kind != "unconstrained" and P.shape[0] != P.shape[1]:
             raise ValueError(f"params[{path!r}]: {kind} needs a square matrix, got {P.shape}")
         _check_start(f"params[{path!r}]", P, kind)
+    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 0:
+        raise ValueError(f"num_steps: must be a non-negative integer, got {num_steps!r}")
     free = free or {}
     optimizer = optax.with_extra_args_support(optimizer or optax.adam(0.05))
     theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}
+    for path, mask in free.items():
+        if path not in theta0:
+            raise ValueError(f"free: {path!r} is not one of the fitted params {list(params)}")
+        if np.shape(mask) != theta0[path].shape:
+            raise ValueError(
+                f"free[{path!r}]: expected a mask of shape {theta0[path].shape} (the "
+                f"{params[path]} parameter), got {np.shape(mask)}"
+            )
     masks = {p: jnp.asarray(free.get(p, jnp.ones_like(t)), t.dtype) for p, t in theta0.items()}
 
     def build(theta):
@@ -175,6 +185,11 @@ def _value_and_grad(objective, opt_state):
 def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool | None, field: str):
     """``model -> result.<field>`` of :func:`~jaxest.run` on every run of the batch ``ys``
     (runs, T, m) under one ``vmap``: what the losses below are made of."""
+    if np.ndim(ys) != 3:
+        raise ValueError(
+            f"ys: expected a batch of shape (runs, T, m), got {np.shape(ys)} (one sequence: "
+            f"ys[None])"
+        )
 
     def values(model):
         def one(y, u):
@@ -204,7 +219,17 @@ def supervised_mse(
     """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n).
     ``checkpoint``: as :func:`~jaxest.run`'s."""
     means = _over_runs(estimator, ys, inputs, prior, SaveAt(fields=("mean",)), checkpoint, "mean")
-    return lambda model: jnp.mean((means(model) - states) ** 2)
+
+    def loss(model):
+        estimates = means(model)
+        if estimates.shape != np.shape(states):
+            raise ValueError(
+                f"states: expected shape {estimates.shape} (runs, T, n: the filtered means), "
+                f"got {np.shape(states)}"
+            )
+        return jnp.mean((estimates - states) ** 2)
+
+    return loss
 
 
 def log_variances(model):
@@ -224,6 +249,7 @@ def log_variance_standard_errors(model, loss: Callable, count: int) -> np.ndarra
     steps). At a maximum-likelihood fit, (theta - truth) / se is then approximately standard
     normal.
     """
+    check_positive_int("count", count)
     q = model.Q.shape[-1]
 
     def total(theta):

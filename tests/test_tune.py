@@ -104,6 +104,25 @@ def test_fit_rejects_unknown_parameters():
         fit(truth, lambda m: 0.0, {"Q": "eigen"})
 
 
+def test_losses_and_fit_name_bad_arguments():
+    """These raised a misleading ys error from inside run, TypeErrors from broadcasting, an
+    MLIRError or a LinAlgError, or (a mask for a parameter not fitted) nothing at all."""
+    truth, prior, sims = scalar_problem(runs=2, T=10)
+    loss = neg_loglik(KalmanFilter(), sims.y, prior=prior)
+    cases = [
+        ("^ys: expected a batch", lambda: neg_loglik(KalmanFilter(), sims.y[0], prior=prior)),
+        ("^states: expected shape", lambda: supervised_mse(KalmanFilter(), sims.y, sims.states[..., :0], prior=prior)(truth)),
+        (r"^free\['Q'\]: expected a mask of shape \(1, 1\)", lambda: fit(truth, loss, ["Q"], free={"Q": jnp.ones(2)})),
+        ("^free: 'R' is not one of the fitted", lambda: fit(truth, loss, ["Q"], free={"R": jnp.ones((1, 1))})),
+        ("^num_steps", lambda: fit(truth, loss, ["Q"], num_steps=-1)),
+        ("^count", lambda: je.log_variance_standard_errors(truth, loss, 0)),
+    ]  # fmt: skip
+    for message, call in cases:
+        with pytest.raises(ValueError, match=message):
+            call()
+    assert fit(truth, loss, ["Q"], num_steps=0).losses.shape == (0,)  # the start, unchanged
+
+
 @pytest.mark.parametrize(
     "Q, kind, message",
     [
