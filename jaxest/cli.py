@@ -270,7 +270,10 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--runs: must be at least 1")
     if args.jobs < 1:
         raise SystemExit("--jobs: must be at least 1")
-    args.out.mkdir(parents=True, exist_ok=True)
+    try:
+        args.out.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise SystemExit(f"--out: cannot create {args.out} ({error.strerror})") from None
     if args.worker is not None:  # one study for a parent that keeps the index
         write_json(args.worker, _run_here(names, args, {}))
         return 0

@@ -30,6 +30,12 @@ def test_unknown_study_is_refused():
     assert done.returncode != 0 and "invalid choice" in done.stderr
 
 
+def test_an_output_folder_that_cannot_be_made_is_named(tmp_path):
+    (tmp_path / "file").write_text("")  # was a NotADirectoryError traceback
+    with pytest.raises(SystemExit, match="^--out: cannot create .*Not a directory"):
+        cli.main(["reproduce", "filters", "--quick", "--out", str(tmp_path / "file" / "sub")])
+
+
 @pytest.mark.slow
 def test_filters_study_quick_beside_another(tmp_path):
     # XLA flags of the user's own (here the suite's other one): the command keeps them and adds
