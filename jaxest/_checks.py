@@ -108,6 +108,13 @@ def check_measurements(ys):
         raise ValueError("ys: contains +-inf entries (only NaN marks a missing measurement)")
 
 
+def check_complete(ys, needs: str) -> None:
+    """``ys`` has no missing (NaN) entries, for estimators that cannot skip them (``needs``
+    says which and why), when concrete."""
+    if is_concrete(ys) and np.any(np.isnan(np.asarray(ys, dtype=np.float64))):
+        raise ValueError(f"ys: has missing (NaN) entries; {needs}")
+
+
 def check_gaussian_prior(prior, n: int | None = None) -> int:
     """``prior`` is a :class:`~jaxest.Gaussian` with a vector mean and an SPD covariance."""
     if not isinstance(prior, Gaussian):

@@ -31,10 +31,10 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxest._checks import (
+    check_complete,
     check_gaussian_arguments,
     check_gaussian_prior,
     check_positive_int,
-    is_concrete,
 )
 from jaxest._priors import Gaussian
 from jaxest._run import run
@@ -204,8 +204,7 @@ def _check(model, ys, prior, num_iters, fixed, inputs):
     check_positive_int("num_iters", num_iters)
     check_gaussian_prior(prior, model.F.shape[-1])
     check_gaussian_arguments(model, ys, inputs, prior)
-    if is_concrete(ys) and np.any(np.isnan(np.asarray(ys, dtype=np.float64))):
-        raise ValueError("ys: fit_em needs complete measurements (no NaN)")
+    check_complete(ys, "fit_em needs complete measurements")
 
 
 __all__ = ["EMResult", "fit_em"]

@@ -121,6 +121,16 @@ def test_time_varying_matrices_must_cover_the_steps_a_run_reads():
         je.simulate(with_inputs, prior, 12, jax.random.key(0), inputs=jnp.ones((10, 1)))
 
 
+def test_steady_state_filter_and_smoother_name_missing_measurements():
+    # their one gain is for complete measurements: NaN estimates (status NONFINITE) before
+    model, ys, prior = good()
+    gappy = ys.at[3, 0].set(jnp.nan)
+    with pytest.raises(ValueError, match="^ys: has missing .*use KalmanFilter"):
+        je.run(je.SteadyStateKalmanFilter(), model, gappy, prior=prior)
+    with pytest.raises(ValueError, match="^ys: has missing"):
+        je.steady_state_smooth(model, gappy, prior=prior)
+
+
 def test_smoothers_name_bad_arguments():
     """A particle filter's result raised an AttributeError, a model of another size a TypeError
     from inside the pass, inputs to a model without B were ignored, an empty result an

@@ -288,6 +288,8 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
         assert res.mean.dtype == dt_ and np.all(np.asarray(res.status) == 0)
         with pytest.raises(ValueError, match="^gains: time-varying with 40 steps"):
             run(filt, system, jnp.concatenate([ys, ys[:3]]), prior=prior)  # gains[39] reused
+        with pytest.raises(ValueError, match="^ys: has missing"):  # was NaN estimates from there
+            run(filt, system, ys.at[3, 0, 0].set(jnp.nan), prior=prior)
         x = np.asarray(mean0, np.float64)
         hears, gains = np.asarray(structure.hears), np.asarray(des.gains, np.float64)
         tol = 1e-12 if dtype == "float64" else 2e-5

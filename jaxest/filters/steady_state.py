@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxest._checks import check_gaussian_prior
+from jaxest._checks import check_complete, check_gaussian_prior
 from jaxest._priors import Gaussian
 from jaxest._status import finite_status
 from jaxest.filters.base import (
@@ -125,7 +125,7 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
 
     Only the prior's mean is used (x(0|-1)): the steady state presumes the filter started at
     t0 -> -infinity, so the reported covariances are the constant Sigma and P(t|t). No missing
-    (NaN) measurements. ``gain`` is :func:`steady_state_gain` of the model (computed in ``init``
+    (NaN) measurements (``ValueError`` when ``ys`` is concrete). ``gain`` is :func:`steady_state_gain` of the model (computed in ``init``
     when not given).
     """
 
@@ -141,6 +141,7 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
     def check(self, model, ys, inputs, prior) -> None:
         check_time_invariant(model)
         super().check(model, ys, inputs, prior)
+        check_complete(ys, "the steady-state gain is for complete measurements (use KalmanFilter)")
 
     def update_predict(self, model, x, factor: SteadyStateFactor, k, y, u):
         g = factor.gain

@@ -23,6 +23,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, Int
 
+from jaxest._checks import check_complete
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._priors import Gaussian
 from jaxest._status import finite_status
@@ -75,7 +76,8 @@ class NetworkFilter(AbstractEstimator):
     on [t_k, t_k + dt] (e.g. :attr:`NetworkDesign.gains` on the sample grid).
 
     No missing (NaN) measurements: the gains are designed for every node measuring at every
-    sample, and a NaN entry makes the estimate NaN from there on (``status``: NONFINITE)."""
+    sample. ``run`` refuses NaN in concrete ``ys`` (``ValueError``); inside ``jit`` a NaN entry
+    makes the estimate NaN from there on (``status``: NONFINITE)."""
 
     structure: CommunicationStructure
     gains: Float[Array, "*T N n q"]
@@ -99,6 +101,7 @@ class NetworkFilter(AbstractEstimator):
             raise ValueError(f"prior.mean: expected shape ({N}, n), got {np.shape(prior.mean)}")
         if np.ndim(ys) != 3 or np.shape(ys)[1] != N:
             raise ValueError(f"ys: expected shape (T, {N}, q), got {np.shape(ys)}")
+        check_complete(ys, "the gains are designed for every node measuring at every sample")
 
     def check_steps(self, model, first: int, count: int) -> None:
         check_time_axis("gains", self.gains, first, count, ndim=3)
