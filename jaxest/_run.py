@@ -66,13 +66,16 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
     extra = () if state is not None or fields is None else estimator.derivative_fields(model)
     extra = tuple(f for f in extra if f not in fields)
 
-    def keep(output):
-        saved = None if save.fn is None else save.fn(output)
+    def keep(output, stacked=False):
+        """The kept fields, ``save.fn`` of each step (``stacked``: of every step's output at
+        once) and the status."""
+        fn = None if save.fn is None else jax.vmap(save.fn) if stacked else save.fn
+        saved = None if fn is None else fn(output)
         return _keep(output, None if fields is None else fields + extra), saved, output.status
 
     if parallel:
         outputs, final = associative_outputs(estimator, model, prior, ks, ys, inputs)
-        outputs, saved, status = keep(outputs)
+        outputs, saved, status = keep(outputs, stacked=True)
         any_status = jax.lax.reduce(status, jnp.int32(0), jax.lax.bitwise_or, (0,))
     else:
         # one key per step index, so a run resumed at k0 draws what one run would have drawn

@@ -182,6 +182,10 @@ def test_save_chooses_what_is_kept():
         save=je.SaveAt(fields=("mean", "factor"), fn=lambda out: out.cov[0, 0]),
     )  # fmt: skip
     np.testing.assert_allclose(own.saved, full.cov[:, 0, 0], rtol=1e-12)
+    # the parallel path applies fn per step too (it was given the stacked outputs at once)
+    parallel = je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR,
+                      save=je.SaveAt(fields=(), fn=lambda out: out.mean[0]))  # fmt: skip
+    np.testing.assert_allclose(parallel.saved, full.mean[:, 0], rtol=1e-10, atol=1e-12)
     np.testing.assert_allclose(own.factor.cov, full.cov, rtol=1e-10, atol=1e-12)
     sqrt = je.run(je.SquareRootKF(), model, ys, prior=PRIOR, save=je.SaveAt(fields=("factor",)))
     np.testing.assert_allclose(sqrt.factor.cov, full.cov, rtol=1e-9, atol=1e-12)
