@@ -236,9 +236,11 @@ def _evaluate_shapes(model, x, u) -> dict[str, tuple]:
         f, F, G, Q = jax.eval_shape(model.transition, x, u, 0)
         h, H, R = jax.eval_shape(model.observation, x, u, 0)
     except Exception as err:  # noqa: BLE001 - reported with the argument's name
+        inputs = "u = None" if u is None else f"u of shape {jax.tree.map(np.shape, u)}"
         raise ValueError(
             f"prior.mean: the model cannot be evaluated at a state of shape {np.shape(x)} "
-            f"({type(err).__name__}: {err})"
+            f"with {inputs} and k = 0 ({type(err).__name__}: {err}); check the state's size, "
+            f"and that the model's functions take (x), (x, u) or (x, u, k)"
         ) from err
     names = ("f(x)", "F", "G", "Q", "h(x)", "H", "R")
     named = dict(zip(names, (f, F, G, Q, h, H, R), strict=True))

@@ -162,6 +162,13 @@ def test_nonlinear_model_shapes_checked():
         je.run(
             KalmanFilter(), model, jnp.zeros((5, 2)), prior=je.Gaussian(jnp.zeros(2), jnp.eye(2))
         )
+    # f(x, k) reads the time index where jaxest passes u (None here): the message says how
+    # the functions are called
+    misread = je.NonlinearGaussian(lambda x, k: x + 0 * k, lambda x, k: x, jnp.eye(2), jnp.eye(2))
+    with pytest.raises(ValueError, match=r"with u = None and k = 0 .* \(x, u, k\)"):
+        je.run(
+            KalmanFilter(), misread, jnp.zeros((5, 2)), prior=je.Gaussian(jnp.zeros(2), jnp.eye(2))
+        )
     with pytest.raises(ValueError, match="noise_gain"):
         je.NonlinearGaussian(
             lambda x, u: x,
