@@ -275,8 +275,7 @@ def check_time_axes(model, first: int, count: int) -> None:
     else:
         return
     for name in names:
-        if getattr(model, name) is not None:
-            check_time_axis(f"model.{name}", getattr(model, name), first, count)
+        check_time_axis(f"model.{name}", getattr(model, name), first, count)
 
 
 @working_precision_by_default

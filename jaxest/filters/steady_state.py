@@ -125,8 +125,8 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
 
     Only the prior's mean is used (x(0|-1)): the steady state presumes the filter started at
     t0 -> -infinity, so the reported covariances are the constant Sigma and P(t|t). No missing
-    (NaN) measurements (``ValueError`` when ``ys`` is concrete). ``gain`` is :func:`steady_state_gain` of the model (computed in ``init``
-    when not given).
+    (NaN) measurements (``ValueError`` when ``ys`` is concrete). ``gain`` is
+    :func:`steady_state_gain` of the model (computed in ``init`` when not given).
     """
 
     gain: SteadyStateGain | None = None

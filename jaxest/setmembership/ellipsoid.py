@@ -76,8 +76,7 @@ def add_box_of_segments(shape, segments, shape_error=None):
     bounded = jnp.ones((), bool)
     for direction in segments:
         a = direction @ spd_solve(shape, direction)
-        # an infinite segment (a remainder bound of +inf over a set that holds a pole of f) or a
-        # NaN one leaves no bounded sum; a > 0 alone would skip it as if it were zero
+        # a > 0 alone would skip an infinite or NaN segment as if it were zero
         bounded = bounded & jnp.isfinite(a)
         nonzero = a > 0
         a_ = _safe(nonzero, a)

@@ -347,7 +347,7 @@ _composed = {
     "sinh": lambda x: _half(sub(_exp(x), _exp(-lift(x)))),
     "cosh": lambda x: _half(add(_exp(abs_(lift(x))), _exp(-abs_(lift(x))))),
     "erfc": lambda x: sub(
-        point(jnp.ones_like(lift(x).lo)), _increasing(jax.scipy.special.erf, lift(x))
+        point(jnp.ones_like(lift(x).lo)), _increasing(_unary_increasing["erf"], lift(x))
     ),
     "pow": lambda x, y: _exp(mul(lift(y), log(lift(x)))),
 }

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_sequence, model_shapes
+from jaxest._checks import check_sequence, first_input, model_shapes
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.linalg import (
@@ -70,14 +70,9 @@ def check_smoother_arguments(smoother: str, model, result, inputs) -> None:
     if inputs is not None:
         check_sequence("inputs", inputs, length=T)
     check_inputs_used(model, inputs)
-    x = jax.ShapeDtypeStruct((n,), result.mean.dtype)
-    u = (
-        None
-        if inputs is None
-        else jax.tree.map(lambda a: jax.ShapeDtypeStruct(a.shape[1:], a.dtype), inputs)
-    )
+    u0 = None if inputs is None else jax.tree.map(first_input, inputs)
     try:
-        f_shape = model_shapes(model, x, u)["f(x)"]
+        f_shape = model_shapes(model, result.mean[0], u0)["f(x)"]
     except ValueError as err:
         raise ValueError(
             f"model: cannot be evaluated at the result's states, of shape ({n},) "
