@@ -2,7 +2,7 @@
 
 On a CPU most of the time of jaxest's test suite and of a notebook is XLA compiling: estimators on
 small matrices are unrolled element-wise code (``jaxest.linalg``), so a filter step is hundreds of
-small fusions and its gradient twice as many. Two flags of the pinned jaxlib (0.10) cut that:
+small fusions and its gradient twice as many. Three flags of the pinned jaxlib (0.10) cut that:
 
 - :data:`FASTER_COMPILATION`, ``--xla_cpu_use_fusion_emitters=false``: each element-wise fusion
   goes straight to LLVM IR instead of through XLA's MLIR fusion pipeline. Compiling takes about
@@ -10,6 +10,11 @@ small fusions and its gradient twice as many. Two flags of the pinned jaxlib (0.
   ``python -m jaxest reproduce`` uses it.
 - :data:`UNOPTIMISED_MACHINE_CODE`, ``--xla_backend_optimization_level=0``: LLVM does not
   optimise, compiling faster again and running slower; for the test suite.
+- :data:`SERIAL_CODEGEN`, ``--xla_cpu_parallel_codegen_split_count=1``: XLA:CPU otherwise
+  splits each program's LLVM module into parts compiled on its thread pool. Where every core
+  already runs a process of its own (the test suite's two workers) the split only adds work;
+  one part compiles in less CPU time. On an idle machine the split is faster in wall time, so
+  ``reproduce`` does not use it.
 
 docs/performance.md ("XLA flags that compile faster") has the measurements.
 
@@ -30,6 +35,7 @@ import jaxlib
 MEASURED_JAXLIB = "0.10."
 FASTER_COMPILATION = ("--xla_cpu_use_fusion_emitters=false",)
 UNOPTIMISED_MACHINE_CODE = ("--xla_backend_optimization_level=0",)
+SERIAL_CODEGEN = ("--xla_cpu_parallel_codegen_split_count=1",)
 #: ``jax.jit(f, compiler_options=OPTIMISED_MACHINE_CODE)`` undoes :data:`UNOPTIMISED_MACHINE_CODE`
 #: for one program, where it runs far longer than it compiles (in the test suite: the particle
 #: filter's stochastic-gradient fit, first call 11.1 s at level 0, 2.6 s at level 2).

@@ -5,7 +5,9 @@ from jaxest import compile_cache, gc_thresholds, xla_flags
 
 # The suite compiles far more than it runs: XLA flags that compile faster (jaxest.xla_flags has
 # the measurements), added before the first computation; subprocesses and notebooks inherit them.
-xla_flags.add(xla_flags.FASTER_COMPILATION + xla_flags.UNOPTIMISED_MACHINE_CODE)
+xla_flags.add(
+    xla_flags.FASTER_COMPILATION + xla_flags.UNOPTIMISED_MACHINE_CODE + xla_flags.SERIAL_CODEGEN
+)
 
 # Tests work in float64 unless they cast to float32 themselves; jaxest never flips this on import.
 jax.config.update("jax_enable_x64", True)
