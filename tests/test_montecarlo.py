@@ -43,7 +43,7 @@ print(json.dumps({"devices": jax.device_count(), "loglik": out["loglik"].tolist(
 def run_study(devices: int) -> dict:
     env = dict(
         os.environ,
-        XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+        XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}",
         JAX_PLATFORMS="cpu",
     )
     root = Path(__file__).resolve().parents[1]
