@@ -84,8 +84,9 @@ def test_fixed_point_is_scipys_map_trajectory():
     assert bool(res.ok)
     assert float(res.changes[-1]) < 1e-9 < float(res.changes[0])
     J = jax.jit(neg_log_posterior(model, prior, ys))
-    grad = jax.jit(jax.grad(J))
-    fun = lambda x: (float(J(jnp.asarray(x))), np.asarray(grad(jnp.asarray(x))))
+    value_and_grad = jax.jit(jax.value_and_grad(J))
+    grad = lambda x: value_and_grad(x)[1]
+    fun = lambda x: jax.tree.map(np.asarray, value_and_grad(jnp.asarray(x)))
     opt = scipy.optimize.minimize(fun, np.asarray(eks).ravel(), jac=True, method="L-BFGS-B",
                                   options={"gtol": 1e-10, "ftol": 1e-15, "maxiter": 5000})  # fmt: skip
     sd = np.sqrt(np.diagonal(np.asarray(res.cov), axis1=1, axis2=2))
