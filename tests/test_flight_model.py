@@ -235,19 +235,24 @@ def test_pinned_model_is_the_full_model_with_the_pinned_entries_set():
     for p, v in pinned.items():
         x[flight.STATES.index(p)] = v
     z, u = jnp.asarray(x[free]), jnp.asarray(rng.normal(0, 0.1, 12))
-    np.testing.assert_allclose(reduced.f(z, u), full.f(jnp.asarray(x), u)[np.array(free)])
-    np.testing.assert_allclose(reduced.h(z, u), full.h(jnp.asarray(x), u))
-    G_full, Q = full.process_noise(jnp.asarray(x), u, 0)
-    G, Q_reduced = reduced.process_noise(z, u, 0)
+
+    @eqx.filter_jit  # one program per model, where op-by-op evaluation compiles hundreds
+    def evaluate(model, x):
+        _, F_linearized = jacobian_by_linearize(lambda v: model.f(v, u), x)
+        return model.f(x, u), model.h(x, u), model.process_noise(x, u, 0), \
+            model.transition(x, u, 0), F_linearized  # fmt: skip
+
+    f_full, h_full, (G_full, Q), (_, F_full, _, _), _ = evaluate(full, jnp.asarray(x))
+    f, h, (G, Q_reduced), (mean, F, G_step, _), F_reduced = evaluate(reduced, z)
+    np.testing.assert_allclose(f, f_full[np.array(free)])
+    np.testing.assert_allclose(h, h_full)
     np.testing.assert_allclose(G, G_full[np.array(free)])
     np.testing.assert_array_equal(Q_reduced, Q)
-    mean, F, G_step, _ = reduced.transition(z, u, 0)  # the pinned columns are gone from F
-    _, F_full, _, _ = full.transition(jnp.asarray(x), u, 0)
+    # the pinned columns are gone from F
     np.testing.assert_allclose(F, F_full[np.ix_(free, free)], atol=1e-12)
     # the time update reduces the full model's; the reduced f and noise gain agree with it
-    np.testing.assert_allclose(mean, reduced.f(z, u), rtol=1e-15)
+    np.testing.assert_allclose(mean, f, rtol=1e-15)
     np.testing.assert_allclose(G_step, G, rtol=1e-13, atol=1e-15)
-    _, F_reduced = jacobian_by_linearize(lambda v: reduced.f(v, u), z)
     np.testing.assert_allclose(F, F_reduced, rtol=1e-13, atol=1e-13)
     with pytest.raises(ValueError, match="pinned"):
         flight.pin_parameters(full, {"u": 0.0})

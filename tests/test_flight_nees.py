@@ -37,29 +37,45 @@ def setting():
 
 def test_linearised_rows_are_the_first_order_expansion_and_the_rest_is_exact(setting):
     model, u, ref, x = setting
-    u_ref = jnp.concatenate([u, ref])
     h = model.observation_fn
-    expansion = h(ref, u) + jax.jacfwd(lambda z: h(z, u))(ref) @ (x - ref)
-    all_rows = flight_nees.AboutReference(h)(x, u_ref)
+
+    @jax.jit  # one program, where op-by-op evaluation compiles each operation
+    def evaluate(x, u, ref):
+        u_ref = jnp.concatenate([u, ref])
+        expansion = h(ref, u) + jax.jacfwd(lambda z: h(z, u))(ref) @ (x - ref)
+        all_rows = flight_nees.AboutReference(h)(x, u_ref)
+        return expansion, all_rows, flight_nees.AboutReference(h, (1,))(x, u_ref), h(x, u)
+
+    expansion, all_rows, beta_only, exact = evaluate(x, u, ref)
     np.testing.assert_allclose(all_rows, expansion, rtol=1e-12, atol=1e-12)
-    beta_only = flight_nees.AboutReference(h, (1,))(x, u_ref)
     np.testing.assert_allclose(beta_only[1], expansion[1], rtol=1e-12, atol=1e-12)
     keep = np.array([0, 2, 3, 4, 5])
-    np.testing.assert_allclose(beta_only[keep], h(x, u)[keep], rtol=1e-12, atol=1e-12)
-    assert not np.allclose(beta_only[1], h(x, u)[1])  # x is far enough from ref to tell them apart
+    np.testing.assert_allclose(beta_only[keep], exact[keep], rtol=1e-12, atol=1e-12)
+    assert not np.allclose(beta_only[1], exact[1])  # x is far enough from ref to tell them apart
 
 
 def test_variants_linearise_f_with_G_at_the_reference(setting):
     model, u, ref, x = setting
-    u_ref = jnp.concatenate([u, ref])
     linear = flight_nees.variant(model, True, None)
     exact = flight_nees.variant(model, False, ())
-    f = model.transition_fn
-    expansion = f(ref, u) + jax.jacfwd(lambda z: f(z, u))(ref) @ (x - ref)
-    np.testing.assert_allclose(linear.f(x, u_ref), expansion, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(exact.f(x, u_ref), f(x, u), rtol=1e-14)
-    np.testing.assert_allclose(exact.h(x, u_ref), model.observation_fn(x, u), rtol=1e-14)
-    G = model.noise_gain
-    np.testing.assert_allclose(linear.noise_gain(x, u_ref), G(ref, u), rtol=1e-14)
-    np.testing.assert_allclose(exact.noise_gain(x, u_ref), G(x, u), rtol=1e-14)
-    assert u_ref.shape == (u.shape[0] + N_STATE,)
+    f, h, G = model.transition_fn, model.observation_fn, model.noise_gain
+
+    @jax.jit  # one program, where op-by-op evaluation compiles each operation
+    def evaluate(x, u, ref):
+        u_ref = jnp.concatenate([u, ref])
+        expansion = f(ref, u) + jax.jacfwd(lambda z: f(z, u))(ref) @ (x - ref)
+        pairs = [
+            (linear.f(x, u_ref), expansion),
+            (exact.f(x, u_ref), f(x, u)),
+            (exact.h(x, u_ref), h(x, u)),
+            (linear.noise_gain(x, u_ref), G(ref, u)),
+            (exact.noise_gain(x, u_ref), G(x, u)),
+        ]
+        return pairs
+
+    pairs = evaluate(x, u, ref)
+    for (got, want), rtol, atol in zip(
+        pairs, [1e-12] + [1e-14] * 4, [1e-12] + [0] * 4, strict=True
+    ):
+        np.testing.assert_allclose(got, want, rtol=rtol, atol=atol)
+    assert ref.shape == (N_STATE,)  # the inputs augmented with the reference state

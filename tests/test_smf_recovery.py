@@ -79,13 +79,14 @@ def test_strips_ellipsoid_holds_every_vertex(n, m, dtype):
     the rounding margin, (1 + n cond(G) eps (2 + |x*| sqrt(trace(G) / m)))^2 at most."""
     rng = np.random.default_rng(10 * n + m)
     eps = float(jnp.finfo(dtype).eps)
+    strips = jax.jit(strips_ellipsoid)  # one program for the 20 draws, not one per operation
     for _ in range(20):
         U, V = np.linalg.qr(rng.normal(size=(m, n)))[0], np.linalg.qr(rng.normal(size=(n, n)))[0]
         H = U @ np.diag(rng.uniform(0.2, 2.0, n)) @ V  # cond(H^T H) <= 100: float32 carries it
         b = rng.uniform(0.01, 1.0, m)
         z = H @ rng.normal(size=n) + rng.uniform(-1, 1, m) * b  # consistent: a point in S
         H, z, b = (np.asarray(a, dtype) for a in (H, z, b))  # the strips the filter sees
-        c, P, bounded, empty = strips_ellipsoid(
+        c, P, bounded, empty = strips(
             jnp.asarray(H), jnp.asarray(z), jnp.asarray(b), jnp.ones(m, bool)
         )
         assert c.dtype == dtype and bool(bounded) and not bool(empty)
