@@ -166,9 +166,10 @@ def relative_theta_error(theta_hat, theta):
     return jnp.abs(theta_hat - theta) / jnp.abs(theta)
 
 
-def tuning_loss(observer, scenario, plant: Plant, name: str):
-    """Time-weighted integrated relative parameter error, int_0^T (t / T) |theta~ / theta|_1 dt / T."""
-    T = CONFIG[name]["tune_T"]
+def tuning_loss(observer, scenario, plant: Plant, name: str, horizon: float | None = None):
+    """Time-weighted integrated relative parameter error, int_0^T (t / T) |theta~ / theta|_1 dt / T,
+    over T = ``horizon`` (default: the aircraft's ``tune_T``)."""
+    T = CONFIG[name]["tune_T"] if horizon is None else horizon
     sim = fly(observer, plant, name, scenario, T)
     err = jnp.sum(relative_theta_error(sim.estimate.theta, plant.theta), axis=-1)
     weight = jnp.arange(err.shape[0]) / err.shape[0]
@@ -200,15 +201,15 @@ def record(sim, plant: Plant, window_full: int) -> dict:
     }
 
 
-def tune(plant: Plant, name: str, key, *, batch: int, steps: int):
+def tune(plant: Plant, name: str, key, *, batch: int, steps: int, horizon: float | None = None):
     """Gradient-tuned M, Sigma, Q, R from the hand-chosen start (:func:`jaxest.tune.fit`, Cholesky
-    parametrisation; Adam with the gradient norm clipped to 1, non-finite steps skipped).
-    Returns (observer, loss before each step)."""
+    parametrisation; Adam with the gradient norm clipped to 1, non-finite steps skipped), on
+    :func:`tuning_loss` over ``horizon``. Returns (observer, loss before each step)."""
     start = hand_observer(plant, window=1)  # the excitation monitor is not needed while tuning
     scenarios = random_scenarios(name, plant, key, batch)
 
     def loss(observer):
-        losses = jax.vmap(lambda s: tuning_loss(observer, s, plant, name))(scenarios)
+        losses = jax.vmap(lambda s: tuning_loss(observer, s, plant, name, horizon))(scenarios)
         return jnp.mean(losses)
 
     optimizer = optax.apply_if_finite(
@@ -323,8 +324,12 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             ac = aircraft(name, printed)  # printed only changes the 747
             plant = plant_from_aircraft(ac)
             T = (20.0 if name == "charlie" else 40.0) if quick else CONFIG[name]["T"]
+            # quick: a quarter of tune_T; the tuning runs take most of the quick study's time
+            tune_T = 10.0 if quick else CONFIG[name]["tune_T"]
             train_key, test_key = jax.random.split(jax.random.fold_in(key, index))
-            tuned, history = tune(plant, name, train_key, batch=tune_batch, steps=tune_steps)
+            tuned, history = tune(
+                plant, name, train_key, batch=tune_batch, steps=tune_steps, horizon=tune_T
+            )
             progress.advance(f"{name} tuned, loss {history[0]:.3g} -> {history[-1]:.3g}")
             observers = {"hand": hand_observer(plant), "tuned": tuned}
             # the nominal scenario noise-free and noisy, then the held-out ones: one batch
@@ -369,6 +374,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             }
             result["tuning_loss"] = history
             result["horizon"] = T
+            result["tuning_horizon"] = tune_T
             result["time_unit"] = ac["time_unit"]
             summary[name] = result
             _plot_errors(out / f"{name}_errors.png", name, flown, plant, ac["state_names"])
