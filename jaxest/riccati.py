@@ -473,8 +473,15 @@ def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
     for name, value in zip(names, (A, B, Q, R), strict=True):
         if np.ndim(value) != 2:
             raise ValueError(f"{name}: expected a matrix, got shape {np.shape(value)}")
-    m, n = np.shape(B) if filter_form else np.shape(B)[::-1]
-    check_matrix(names[0], A, (n, n))
+    check_matrix(names[0], A, square=True)
+    n = np.shape(A)[0]
+    m, n_of_B = np.shape(B) if filter_form else np.shape(B)[::-1]
+    if n_of_B != n:
+        side = "columns" if filter_form else "rows"
+        raise ValueError(
+            f"{names[1]}: expected {n} {side} to match {names[0]} ({n} x {n}), "
+            f"got shape {np.shape(B)}"
+        )
     check_matrix(names[2], Q, (n, n), psd=True)
     check_matrix(names[3], R, (m, m), spd=True)
     dtype = jnp.result_type(A, B, Q, R, jnp.zeros((), jnp.float32))

@@ -290,8 +290,10 @@ def test_filter_form_names_F_and_H():
         solve_filter_care(F, H, np.eye(2), np.eye(1))
     with pytest.raises(ValueError, match=r"^\(F, Q\): no stabilising solution: the mode 1 of F"):
         solve_filter_dare(np.diag([1.0, 0.5]), np.ones((1, 2)), np.diag([0.0, 1.0]), np.eye(1))
-    with pytest.raises(ValueError, match="^F:"):
+    with pytest.raises(ValueError, match=r"^H: expected 2 columns to match F \(2 x 2\)"):
         solve_filter_dare(F, np.ones((1, 3)), np.eye(2), np.eye(1))
+    with pytest.raises(ValueError, match="^F: must be square"):
+        solve_filter_care(np.ones((2, 3)), np.ones((1, 3)), np.eye(2), np.eye(1))
 
 
 def test_stable_modes_need_neither_control_nor_observation():
@@ -307,7 +309,8 @@ def test_stable_modes_need_neither_control_nor_observation():
 @pytest.mark.parametrize(
     "args,name",
     [
-        ((np.eye(2), np.ones((3, 1)), np.eye(2), np.eye(1)), "A"),
+        ((np.eye(2), np.ones((3, 1)), np.eye(2), np.eye(1)), "B"),  # A is 2 x 2: B has 3 rows
+        ((np.ones((2, 3)), np.ones((2, 1)), np.eye(2), np.eye(1)), "A"),
         ((np.eye(2), np.ones((2, 1)), np.eye(2), -np.eye(1)), "R"),
         ((np.eye(2), np.ones((2, 1)), np.array([[1.0, 2.0], [0.0, 1.0]]), np.eye(1)), "Q"),
         ((np.eye(2), np.ones(2), np.eye(2), np.eye(1)), "B"),
