@@ -34,6 +34,12 @@ def check_positive_int(name: str, value) -> None:
         raise ValueError(f"{name}: must be a positive integer, got {value!r}")
 
 
+def check_nonnegative_int(name: str, value) -> None:
+    """``value`` is a Python int of at least 0, not a bool (a count that may be zero: steps)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{name}: must be a non-negative integer, got {value!r}")
+
+
 def as_array(name: str, value):
     """``value`` as something with a shape; Python numbers and lists become NumPy arrays."""
     if value is None:

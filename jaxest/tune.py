@@ -20,7 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxest._checks import check_matrix, check_positive_int, is_concrete
+from jaxest._checks import check_matrix, check_nonnegative_int, check_positive_int, is_concrete
 from jaxest._run import SaveAt, run
 
 PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
@@ -108,8 +108,7 @@ def fit(
         if kind != "unconstrained" and P.shape[0] != P.shape[1]:
             raise ValueError(f"params[{path!r}]: {kind} needs a square matrix, got {P.shape}")
         _check_start(f"params[{path!r}]", P, kind)
-    if isinstance(num_steps, bool) or not isinstance(num_steps, int) or num_steps < 0:
-        raise ValueError(f"num_steps: must be a non-negative integer, got {num_steps!r}")
+    check_nonnegative_int("num_steps", num_steps)
     free = free or {}
     optimizer = optax.with_extra_args_support(optimizer or optax.adam(0.05))
     theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}

@@ -239,8 +239,8 @@ def test_pinned_model_is_the_full_model_with_the_pinned_entries_set():
     @eqx.filter_jit  # one program per model, where op-by-op evaluation compiles hundreds
     def evaluate(model, x):
         _, F_linearized = jacobian_by_linearize(lambda v: model.f(v, u), x)
-        return model.f(x, u), model.h(x, u), model.process_noise(x, u, 0), \
-            model.transition(x, u, 0), F_linearized  # fmt: skip
+        noise, transition = model.process_noise(x, u, 0), model.transition(x, u, 0)
+        return model.f(x, u), model.h(x, u), noise, transition, F_linearized
 
     f_full, h_full, (G_full, Q), (_, F_full, _, _), _ = evaluate(full, jnp.asarray(x))
     f, h, (G, Q_reduced), (mean, F, G_step, _), F_reduced = evaluate(reduced, z)

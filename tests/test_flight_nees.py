@@ -64,14 +64,13 @@ def test_variants_linearise_f_with_G_at_the_reference(setting):
     def evaluate(x, u, ref):
         u_ref = jnp.concatenate([u, ref])
         expansion = f(ref, u) + jax.jacfwd(lambda z: f(z, u))(ref) @ (x - ref)
-        pairs = [
+        return [
             (linear.f(x, u_ref), expansion),
             (exact.f(x, u_ref), f(x, u)),
             (exact.h(x, u_ref), h(x, u)),
             (linear.noise_gain(x, u_ref), G(ref, u)),
             (exact.noise_gain(x, u_ref), G(x, u)),
         ]
-        return pairs
 
     pairs = evaluate(x, u, ref)
     for (got, want), rtol, atol in zip(
