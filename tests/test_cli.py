@@ -23,11 +23,10 @@ def test_reproduce_help_lists_every_study(capsys):
         assert option in text
 
 
-def test_unknown_study_is_refused():
-    done = subprocess.run(
-        [sys.executable, "-m", "jaxest", "reproduce", "nosuch"], capture_output=True, text=True
-    )
-    assert done.returncode != 0 and "invalid choice" in done.stderr
+def test_unknown_study_is_refused(capsys):
+    with pytest.raises(SystemExit) as exit_:
+        cli.main(["reproduce", "nosuch"])
+    assert exit_.value.code != 0 and "invalid choice" in capsys.readouterr().err
 
 
 def test_an_output_folder_that_cannot_be_made_is_named(tmp_path):
