@@ -166,6 +166,7 @@ class FlightRecord(eqx.Module):
     true_states: Float[Array, "T 23"]
 
 
+@eqx.filter_jit  # one program where op-by-op evaluation compiled 49
 def corrupt(flight: TrueFlight, parameters, key, input_std=INPUT_STD, output_std=OUTPUT_STD,
             lever_arms: LeverArms = LEVER_ARMS) -> FlightRecord:  # fmt: skip
     """Sensors of eq 27-28: measured inputs u_m = u - b_in - eta and measurements
