@@ -298,7 +298,7 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
             y = np.asarray(ys[k], np.float64)
             x = explicit_eq9_step(system64, hears, gains[k], x, y, DT)
         # vmap over systems (the model is a pytree) and measurements equals a loop
-        systems = jax.vmap(lambda k: mass_chain(3, k_near=k, dtype=dt_))(
+        systems = jax.jit(jax.vmap(lambda k: mass_chain(3, k_near=k, dtype=dt_)))(
             jnp.asarray([0.3, 0.6], dt_)
         )
         batched = jax.vmap(lambda s, y: run(filt, s, y, prior=prior).mean)(
