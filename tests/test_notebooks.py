@@ -3,8 +3,8 @@
 The code cells run in the test's own process, in order and in one namespace, as a script made
 from the notebook would: a Jupyter kernel per notebook cost 2.7 s of CPU each to start and to
 import jax, jaxest and matplotlib again (seven notebooks: 59 s in kernels, 41 s in one
-process). ``make docs`` executes every notebook in a kernel, and its check fails on a cell that
-raised there."""
+process). ``make docs`` executes every notebook in a kernel, and the build fails on a cell that
+raises there (``allow_errors: false`` in mkdocs.yml)."""
 
 import linecache
 from pathlib import Path
