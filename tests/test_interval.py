@@ -46,7 +46,8 @@ def test_outward_rounding_contains_exact_rational_results():
 UNARY = {
     "sin": (iv.sin, np.sin, 8.0), "cos": (iv.cos, np.cos, 8.0), "exp": (None, np.exp, 2.0),
     "tanh": (None, np.tanh, 3.0), "atan": (None, np.arctan, 3.0), "abs": (iv.abs_, np.abs, 2.0),
-    "square": (None, np.square, 2.0),
+    "square": (None, np.square, 2.0), "asin": (iv.asin, np.arcsin, 1.0),
+    "acos": (iv.acos, np.arccos, 1.0),
 }  # fmt: skip
 
 
@@ -66,8 +67,8 @@ def test_unary_rules_contain_dense_samples(name):
 
 def test_composed_rules_contain_dense_samples():
     """sinh, cosh, erfc and pow are composed of exp, log, erf (no trust in XLA's own); their
-    enclosures hold dense samples, the positive bases of pow included, and f(x) = x^2.5 cosh(x)
-    has a Hessian enclosure that holds the sampled Hessians."""
+    enclosures hold dense samples, the positive bases of pow included, and a function of
+    x^2.5 cosh(y), sinh(xy) and asin(xy) has a Hessian enclosure that holds the sampled Hessians."""
     rng = np.random.default_rng(5)
     x = _random_interval(rng, (300,), 3.0)
     xs = _samples(x, rng)
@@ -85,7 +86,9 @@ def test_composed_rules_contain_dense_samples():
     sampled = [np.sinh(xs), np.cosh(xs), scipy.special.erfc(xs), *[bs**y for y in exponents]]
     for out, values in zip(enclosures(x, base), [*sampled, 2.0**xs], strict=True):
         assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
-    f = lambda v: jnp.stack([(2 + v[0]) ** 2.5 * jnp.cosh(v[1]), jnp.sinh(v[0] * v[1])])
+    f = lambda v: jnp.stack(
+        [(2 + v[0]) ** 2.5 * jnp.cosh(v[1]), jnp.sinh(v[0] * v[1]) + jnp.arcsin(v[0] * v[1])]
+    )
     box = Interval(jnp.asarray([0.1, -0.3]), jnp.asarray([0.4, 0.2]))
     enclosure = jax.jit(iv.hessian_interval, static_argnums=0)(f, box)
     hessians = jax.vmap(jax.hessian(f))(jnp.asarray(_samples(box, rng)))
@@ -103,6 +106,14 @@ def test_positive_domain_rules_and_poles():
     ):
         values = fn(_samples(x, rng))
         assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
+    # asin and acos on intervals reaching past [-1, 1]: the range over the part inside it
+    reaching = Interval(jnp.asarray([0.5, -3.0]), jnp.asarray([2.0, -0.5]))
+    for rule, fn in ((iv.asin, np.arcsin), (iv.acos, np.arccos)):
+        out, ends = rule(reaching), fn(np.asarray([[0.5, -1.0], [1.0, -0.5]]))
+        assert np.all(np.asarray(out.lo) <= ends.min(0))
+        assert np.all(np.asarray(out.hi) >= ends.max(0))
+        np.testing.assert_allclose(np.asarray(out.hi - out.lo), np.ptp(ends, 0), rtol=1e-12)
+    assert np.isnan(iv.asin(Interval(jnp.asarray([1.5]), jnp.asarray([2.0]))).lo[0])  # no x in it
     t = iv.tan(Interval(jnp.asarray([1.0, -0.5]), jnp.asarray([2.0, 0.5])))  # the first holds pi/2
     assert np.isinf(t.lo[0]) and np.isinf(t.hi[0]) and np.isfinite(t.hi[1])
     d = iv.div(iv.point(jnp.ones(1)), Interval(jnp.asarray([-1.0]), jnp.asarray([1.0])))

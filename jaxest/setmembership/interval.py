@@ -7,7 +7,7 @@ interval that contains the exact real result of the operation on every point of 
   endpoint one ulp outward (``jnp.nextafter``) is enough;
 - sums of k terms, integer powers and dot products carry up to k roundings: the endpoints move
   outward by k * eps * |value| (:func:`_widen`) and then one more ulp;
-- library functions (exp, log, sin, tan, atan, tanh...) are not correctly rounded; XLA's are
+- library functions (exp, log, sin, tan, asin, atan, tanh...) are not correctly rounded; XLA's are
   accurate to a few ulps, and their endpoints move outward by ``_LIBM_ULPS`` ulps;
 - sinh, cosh, erfc and x^y (``pow``) are composed of those rules (``_composed``).
 
@@ -168,6 +168,21 @@ def sqrt(x: Interval) -> Interval:
 
 def log(x: Interval) -> Interval:
     return _increasing(jnp.log, Interval(jnp.maximum(x.lo, 0.0), x.hi))
+
+
+def _unit_domain(x: Interval) -> Interval:
+    """x restricted to [-1, 1], the domain of asin and acos (an x wholly outside it gives NaN)."""
+    return Interval(jnp.maximum(x.lo, -1.0), jnp.minimum(x.hi, 1.0))
+
+
+def asin(x: Interval) -> Interval:
+    return _increasing(jnp.arcsin, _unit_domain(x))
+
+
+def acos(x: Interval) -> Interval:
+    """Decreasing: each end of the result comes from the other end of x."""
+    x = _unit_domain(x)
+    return _widen(jnp.arccos(x.hi), jnp.arccos(x.lo), _LIBM_ULPS)
 
 
 def abs_(x: Interval) -> Interval:
@@ -362,6 +377,7 @@ def _rule(name: str) -> Callable | None:
     simple = {
         "add": add, "add_any": add, "sub": sub, "mul": mul, "div": div, "sqrt": sqrt,
         "log": log, "abs": abs_, "sin": sin, "cos": cos, "tan": tan, "atan2": atan2,
+        "asin": asin, "acos": acos,
         "max": max_, "min": min_, "select_n": select_n,
         "neg": lambda x: -lift(x),
         "square": lambda x: integer_pow(lift(x), 2),
