@@ -122,6 +122,32 @@ def test_a_pole_inside_the_set_makes_it_unbounded_not_wrong():
     assert np.all(np.asarray(result.contains(states)))
 
 
+def test_a_nan_remainder_bound_skips_its_row_and_is_flagged():
+    """A remainder bound that is NaN bounds nothing. h's: its row is skipped (the sets still hold
+    the state) and the step is flagged NONFINITE, where the strip used to be skipped silently;
+    f's: the predicted set is unbounded, flagged NONFINITE at the step that computed it."""
+    f = lambda x: 0.9 * x
+    states = jnp.stack([0.9**k * jnp.asarray([0.3, -0.2]) for k in range(8)])
+    ys = states + 0.5e-2 * jnp.asarray([1.0, -1.0])
+    ys = ys.at[5, 1].set(jnp.nan)  # missing: its NaN bound plays no part
+    prior = Ellipsoid(jnp.zeros(2), 0.25 * jnp.eye(2))
+    bounds = (jnp.full(2, 1e-3), jnp.full(2, 1e-2))
+    nan_row = lambda c, P, u: jnp.asarray([0.0, jnp.nan])
+    skipped = BoundedNoiseModel(f, lambda x: x, *bounds, h_remainder=nan_row)
+    result = run(SetMembershipFilter(), skipped, ys, prior=prior)
+    status = np.asarray(result.status)
+    assert np.all(status[[0, 1, 2, 3, 4, 6, 7]] == Status.NONFINITE) and status[5] == Status.OK
+    assert np.all(np.asarray(result.contains(states)))
+    first_row_only = BoundedNoiseModel(f, lambda x: x[:1], bounds[0], bounds[1][:1])
+    alone = run(SetMembershipFilter(), first_row_only, ys[:, :1], prior=prior)
+    np.testing.assert_allclose(result.shape, alone.shape, rtol=1e-12)  # as if the row were not
+    lost = BoundedNoiseModel(
+        f, lambda x: x[:1], bounds[0], bounds[1][:1], f_remainder=lambda c, P, u: c * jnp.nan
+    )  # one row: no recovery from the strips alone
+    status = np.asarray(run(SetMembershipFilter(), lost, ys[:, :1], prior=prior).status)
+    assert status[0] & Status.NONFINITE and np.all(status[1:] & Status.UNBOUNDED)
+
+
 def test_float32_carries_sets_many_noise_widths_across():
     # process noise 0.0005, measurement noise 0.05: the first filtered sets are about 0.09 in
     # radius, 180 of the least half-width. float32 keeps the sets float64 keeps (the default

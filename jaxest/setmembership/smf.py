@@ -10,7 +10,7 @@ The filter carries an ellipsoid E(c_k, P_k) guaranteed to contain the true state
 - time update (eqs 7-17): f is linearised at c, P <- F P F^T (eq 15) and the box of half-widths
   wbar + remainder bound (eqs 11-13) is added one segment at a time (eqs 16-17); c <- f(c) (eq 14).
 
-What happens in the two failure modes (both reported in ``status``):
+What happens in the failure modes (each reported in ``status``):
 
 - **Empty intersection** (``Status.EMPTY_SET``): the measurements at step k are inconsistent with
   the predicted set, so the model (the noise bounds, or a healthy sensor) is wrong: a guaranteed
@@ -22,6 +22,10 @@ What happens in the two failure modes (both reported in ``status``):
   x_1 of the Duffing system: its remainder bound grows like P_11^{3/2}. The set then contains
   everything: the filter stops updating and reports a shape of +inf on the diagonal, from the
   step whose filtered set went bad (one step later when only the prediction did).
+- **Unknown remainder bound** (``Status.NONFINITE``): a remainder bound that is NaN (f or h
+  evaluated outside its domain over the set, e.g. ``log`` or ``arcsin`` of an interval wholly
+  outside theirs, or a closed form that failed) bounds nothing. A measurement row with one is
+  skipped, so the set stays guaranteed; f's makes the predicted set unbounded.
 - **Recovery** (``Status.RECOVERED``, eqs R1-R3 of docs/papers/smf.md): the flag stays set until a
   step whose observed measurement rows alone guarantee a bounded set: h affine in x (its remainder
   bound over the whole space is exactly zero) and the rows constrain every direction (rank n,
@@ -316,11 +320,17 @@ class SetMembershipFilter(AbstractEstimator):
         )
         everything = whole_space(P.shape[-1], P.dtype)
         ill = ~lost & ~(conditioned & conditioned_next)
+        # a NaN remainder bound bounds nothing: its measurement row was skipped (the set stays
+        # guaranteed) or the predicted set is lost (UNBOUNDED), and the step says why
+        unknown_remainder = (~lost & jnp.any(~jnp.isnan(y) & jnp.isnan(alpha_h))) | (
+            ~unbounded & jnp.any(jnp.isnan(alpha_f))
+        )
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)
             | jnp.where(unbounded, Status.UNBOUNDED, 0)
             | jnp.where(ill, Status.ILL_CONDITIONED, 0)
             | jnp.where(recovered, Status.RECOVERED, 0)
+            | jnp.where(unknown_remainder, Status.NONFINITE, 0)
             | check_finite_status(c)
         ).astype(jnp.int32)
         output = SMFOutput(
