@@ -231,7 +231,8 @@ class SetMembershipFilter(AbstractEstimator):
         half_widths = model.measurement_bound + alpha  # eq 21
         new_center, new_shape, empty = center, shape, jnp.zeros((), bool)
         for i in range(H.shape[0]):
-            observed = ~jnp.isnan(y[i])
+            # a row with a NaN remainder bound bounds nothing: skipped (``step`` flags it)
+            observed = ~jnp.isnan(y[i]) & ~jnp.isnan(half_widths[i])
             z = jnp.where(observed, y[i], 0.0) - h_c[i] + H[i] @ center  # eq 24
             c_i, P_i, empty_i = intersect_strip(new_center, new_shape, H[i], z, half_widths[i])
             new_center = jnp.where(observed, c_i, new_center)
@@ -320,8 +321,9 @@ class SetMembershipFilter(AbstractEstimator):
         )
         everything = whole_space(P.shape[-1], P.dtype)
         ill = ~lost & ~(conditioned & conditioned_next)
-        # a NaN remainder bound bounds nothing: its measurement row was skipped (the set stays
-        # guaranteed) or the predicted set is lost (UNBOUNDED), and the step says why
+        # a NaN remainder bound bounds nothing: its measurement row was skipped
+        # (measurement_update; the set stays guaranteed) or the predicted set is lost
+        # (UNBOUNDED), and the step says why
         unknown_remainder = (~lost & jnp.any(~jnp.isnan(y) & jnp.isnan(alpha_h))) | (
             ~unbounded & jnp.any(jnp.isnan(alpha_f))
         )
