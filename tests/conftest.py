@@ -4,7 +4,7 @@ import pytest
 from jaxest import compile_cache, gc_thresholds, xla_flags
 
 # The suite compiles far more than it runs: XLA flags that compile faster (jaxest.xla_flags has
-# the measurements), added before the first computation; subprocesses and notebooks inherit them.
+# the measurements), added before the first computation; subprocesses inherit them.
 xla_flags.add(
     xla_flags.FASTER_COMPILATION + xla_flags.UNOPTIMISED_MACHINE_CODE + xla_flags.SERIAL_CODEGEN
 )
@@ -14,7 +14,7 @@ jax.config.update("jax_enable_x64", True)
 
 
 # JAX's persistent compilation cache only where JAXEST_COMPILATION_CACHE=1 asks for it
-# (jaxest.compile_cache says why it is off by default); subprocesses and notebooks inherit it.
+# (jaxest.compile_cache says why it is off by default); subprocesses inherit it.
 compile_cache.enable()
 
 # Python's cyclic garbage collector, run 30-40 times less often: at its default thresholds it took

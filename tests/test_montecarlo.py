@@ -2,10 +2,8 @@
 and on four (forced host) devices."""
 
 import json
-import os
 import subprocess
 import sys
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +13,7 @@ import pytest
 import jaxest as je
 from jaxest.filters import SVDEKF
 from jaxest.montecarlo import monte_carlo
+from tests.processes import cpu_devices_env
 
 STUDY = """
 import json, sys
@@ -41,16 +40,9 @@ print(json.dumps({"devices": jax.device_count(), "loglik": out["loglik"].tolist(
 
 
 def run_study(devices: int) -> dict:
-    env = dict(
-        os.environ,
-        XLA_FLAGS=f"{os.environ.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count={devices}",
-        JAX_PLATFORMS="cpu",
-    )
-    root = Path(__file__).resolve().parents[1]
-    env["PYTHONPATH"] = str(root) + os.pathsep + env.get("PYTHONPATH", "")
     done = subprocess.run(
         [sys.executable, "-c", STUDY],
-        env=env,
+        env=cpu_devices_env(devices),
         capture_output=True,
         text=True,
         timeout=600,

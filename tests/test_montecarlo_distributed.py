@@ -6,7 +6,6 @@ so the single-process reference runs in a subprocess too, with the same environm
 
 from __future__ import annotations
 
-import os
 import socket
 import subprocess
 import sys
@@ -16,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.processes import cpu_devices_env
+
 NUM_RUNS, CHUNK = 200, 25
-ROOT = Path(__file__).resolve().parents[1]
 
 WORKER = (
     textwrap.dedent(
@@ -71,21 +71,11 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
-def _env() -> dict:
-    env = dict(os.environ)
-    env.update(
-        JAX_PLATFORMS="cpu",
-        XLA_FLAGS=f"{env.get('XLA_FLAGS', '')} --xla_force_host_platform_device_count=1",
-        PYTHONPATH=str(ROOT) + os.pathsep + env.get("PYTHONPATH", ""),
-    )
-    return env
-
-
 def _launch(script: Path, out: Path, num_processes: int, port: int) -> list[subprocess.Popen]:
     return [
         subprocess.Popen(
             [sys.executable, str(script), str(out), str(port), str(num_processes), str(i)],
-            env=_env(),
+            env=cpu_devices_env(1),
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,

@@ -3,11 +3,11 @@
 Runs in a subprocess because the device count is fixed when JAX starts.
 """
 
-import os
 import subprocess
 import sys
 import textwrap
-from pathlib import Path
+
+from tests.processes import ROOT, cpu_devices_env
 
 SCRIPT = textwrap.dedent(
     """
@@ -55,17 +55,10 @@ SCRIPT = textwrap.dedent(
 
 
 def test_sharded_run_matches_single_device():
-    root = Path(__file__).resolve().parents[1]
-    env = dict(os.environ)
-    env["XLA_FLAGS"] = (
-        env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
-    ).strip()
-    env["JAX_PLATFORMS"] = "cpu"
-    env["PYTHONPATH"] = str(root) + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.run(
         [sys.executable, "-c", SCRIPT],
-        env=env,
-        cwd=root,
+        env=cpu_devices_env(4),
+        cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=600,
