@@ -148,6 +148,26 @@ def test_a_nan_remainder_bound_skips_its_row_and_is_flagged():
     assert status[0] & Status.NONFINITE and np.all(status[1:] & Status.UNBOUNDED)
 
 
+@pytest.mark.parametrize("reading", [np.inf, -np.inf])
+def test_an_infinite_reading_is_an_alarm_not_a_missing_measurement(reading):
+    """An infinite y lies in no strip around a finite h(x): EMPTY_SET at its step, where it used
+    to be skipped with status OK as a NaN (missing) one is, so a sensor stuck at inf went
+    unnoticed. The step's readings are discarded, as for any alarm."""
+    f = lambda x: 0.9 * x
+    states = jnp.stack([0.9**k * jnp.asarray([0.3, -0.2]) for k in range(8)])
+    ys = states + 0.5e-2 * jnp.asarray([1.0, -1.0])
+    model = BoundedNoiseModel(f, lambda x: x, jnp.full(2, 1e-3), jnp.full(2, 1e-2))
+    prior = Ellipsoid(jnp.zeros(2), 0.25 * jnp.eye(2))
+    result = jax.jit(lambda ys: run(SetMembershipFilter(), model, ys, prior=prior))(
+        ys.at[3, 0].set(reading)
+    )
+    assert np.flatnonzero(np.asarray(result.status)).tolist() == [3]
+    assert result.status[3] == Status.EMPTY_SET
+    assert np.all(np.asarray(result.contains(states)))
+    discarded = run(SetMembershipFilter(), model, ys.at[3].set(jnp.nan), prior=prior)
+    np.testing.assert_array_equal(result.shape, discarded.shape)
+
+
 def test_float32_carries_sets_many_noise_widths_across():
     # process noise 0.0005, measurement noise 0.05: the first filtered sets are about 0.09 in
     # radius, 180 of the least half-width. float32 keeps the sets float64 keeps (the default

@@ -166,6 +166,22 @@ def test_recovery_waits_for_rows_that_span_and_alarms_on_inconsistent_ones():
     assert np.all(np.asarray(result.contains(states)))
 
 
+def test_a_lost_filter_alarms_on_an_infinite_reading_and_recovers_after_it():
+    """A lost filter with an affine h (finite everywhere) alarms on an infinite reading and takes
+    nothing from that step's other rows; it recovers at the next step."""
+    states, ys = _simulate(jax.random.key(1), jnp.float64)
+    ys = ys.at[OUTAGE[1], 1].set(jnp.inf)
+    result = set_membership_filter(
+        _model(jnp.float64), ys, prior=_prior(jnp.float64),
+        estimator=SetMembershipFilter(max_radius=MAX_RADIUS),
+    )  # fmt: skip
+    status = np.asarray(result.status)
+    assert np.flatnonzero(status & Status.EMPTY_SET).tolist() == [OUTAGE[1]]
+    assert np.flatnonzero(status & Status.RECOVERED).tolist() == [OUTAGE[1] + 1]
+    assert status[OUTAGE[1]] & Status.UNBOUNDED
+    assert np.all(np.asarray(result.contains(states)))
+
+
 @pytest.mark.parametrize("recover", [True, False])
 def test_no_recovery_without_a_guarantee(recover):
     """h(x) = x + 0.1 x^3 (not affine: no bound on its linearisation error over the whole space)

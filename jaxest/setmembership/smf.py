@@ -38,7 +38,9 @@ What happens in the failure modes (each reported in ``status``):
   set): the flag stays set for the rest of the run, as it does with ``recover=False``.
 
 A NaN entry of y_k means "no measurement from that sensor at step k" (its strip is skipped);
-the fault-isolation banks of :mod:`jaxest.setmembership.fdi` feed sensor subsets this way.
+the fault-isolation banks of :mod:`jaxest.setmembership.fdi` feed sensor subsets this way. An
+infinite entry is a reading that no bounded noise around a finite h(x) explains: an EMPTY_SET
+alarm, as any inconsistent reading is (a lost filter, for an affine h).
 """
 
 from __future__ import annotations
@@ -232,12 +234,14 @@ class SetMembershipFilter(AbstractEstimator):
         new_center, new_shape, empty = center, shape, jnp.zeros((), bool)
         for i in range(H.shape[0]):
             # a row with a NaN remainder bound bounds nothing: skipped (``step`` flags it)
-            observed = ~jnp.isnan(y[i]) & ~jnp.isnan(half_widths[i])
+            observed = jnp.isfinite(y[i]) & ~jnp.isnan(half_widths[i])
+            # an infinite reading lies in no strip of finite half-width around a finite h(x)
+            impossible = jnp.isinf(y[i]) & jnp.isfinite(half_widths[i])
             z = jnp.where(observed, y[i], 0.0) - h_c[i] + H[i] @ center  # eq 24
             c_i, P_i, empty_i = intersect_strip(new_center, new_shape, H[i], z, half_widths[i])
             new_center = jnp.where(observed, c_i, new_center)
             new_shape = jnp.where(observed, P_i, new_shape)
-            empty = empty | (observed & empty_i)
+            empty = empty | (observed & empty_i) | impossible
         # an inconsistent measurement set is discarded: carry the predicted set forward
         return (
             jnp.where(empty, center, new_center),
@@ -278,18 +282,20 @@ class SetMembershipFilter(AbstractEstimator):
         Guaranteed only when h is affine in x, h(x) = H x + h(0): proved by the remainder bound
         of h (the model's own, automatic or closed-form) over the whole space being exactly
         zero. For an h that is not affine no bound on the linearisation error holds over an
-        unbounded set, so there is no recovery. ``possible``: h affine and the observed rows
-        (non-NaN entries of y) constrain every direction (:func:`strips_ellipsoid`);
-        ``inconsistent``: besides, no state satisfies them (eq R3).
+        unbounded set, so there is no recovery. ``possible``: h affine, no reading infinite and
+        the observed rows (finite entries of y) constrain every direction
+        (:func:`strips_ellipsoid`); ``inconsistent``: h affine, and an infinite reading (an affine
+        h is finite everywhere) or no state satisfies the rows (eq R3).
         """
         h_c, H = linearised
         everything = whole_space(model.state_dim, center.dtype)
         bound = model.remainder(model.observation, model.h_remainder, center, everything, u, k)
         affine = jnp.all(bound == 0)
-        observed = ~jnp.isnan(y)
+        observed = jnp.isfinite(y)
+        impossible = jnp.any(jnp.isinf(y))
         z = jnp.where(observed, y, 0.0) - h_c + H @ center  # eq 24, exact for affine h
         c, P, bounded, inconsistent = strips_ellipsoid(H, z, model.measurement_bound, observed)
-        return c, P, affine & bounded, affine & inconsistent
+        return c, P, affine & bounded & ~impossible, affine & (inconsistent | impossible)
 
     @working_precision
     def step(self, model, state: SMFState, k, y, u, key=None):
