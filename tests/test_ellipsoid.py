@@ -63,6 +63,26 @@ def test_box_sum_contains_sampled_points_and_zero_width_is_identity():
     np.testing.assert_array_equal(np.asarray(add_box(jnp.asarray(P), jnp.zeros(3))), P)
 
 
+@pytest.mark.parametrize("n, rank", [(1, 0), (2, 0), (2, 1), (3, 1), (3, 2), (5, 3)])
+def test_box_sum_of_a_flat_set_is_bounded_and_holds_the_sum(n, rank):
+    """A singular P (a flat set: F P F^T of a singular Jacobian) plus a box: the sum is bounded,
+    where the shape used to be +inf (the unbounded flag); it holds E(0, P) + box by support
+    functions, sqrt(d^T P+ d) >= sqrt(d^T P d) + sum_i w_i |d_i| for every direction d, and for
+    n = 1 it is the interval itself (rounded outward)."""
+    rng = np.random.default_rng(10 * n + rank)
+    A = rng.normal(size=(n, rank))
+    P = A @ A.T
+    w = rng.uniform(0.1, 1.0, n)
+    new = np.asarray(add_box(jnp.asarray(P), jnp.asarray(w)))
+    assert np.all(np.isfinite(new)) and np.all(np.linalg.eigvalsh(new) > 0)
+    d = rng.normal(size=(4000, n))
+    d[:n] = np.eye(n)
+    support = lambda M: np.sqrt(np.einsum("ki,ij,kj->k", d, M, d))
+    assert np.all(support(new) >= support(P) + np.abs(d) @ w)
+    if n == 1:
+        assert w[0] ** 2 <= new[0, 0] <= w[0] ** 2 * (1 + 1e-14)
+
+
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
 def test_strip_intersection_contains_sampled_points_and_is_least_volume(n):
     rng = np.random.default_rng(100 + n)

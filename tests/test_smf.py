@@ -168,6 +168,48 @@ def test_an_infinite_reading_is_an_alarm_not_a_missing_measurement(reading):
     np.testing.assert_array_equal(result.shape, discarded.shape)
 
 
+def test_a_singular_jacobian_keeps_the_predicted_set_bounded():
+    """F P F^T is flat where f's Jacobian is singular. The box added to it gives a bounded set,
+    where the filter used to flag ILL_CONDITIONED and then UNBOUNDED for good: a state driven by
+    noise alone (over 50 runs the sets hold the truth and nothing is flagged), and the logistic
+    map predicted from its vertex (f'(0.5) = 0) as from a point beside it."""
+    f = lambda x: jnp.stack([0.9 * x[0] + x[1], 0.0 * x[1]])  # x_2 = w_2 at every step
+    bounds = (jnp.asarray([0.01, 0.05]), jnp.asarray([0.1]))
+    model = BoundedNoiseModel(f, lambda x: x[:1], *bounds)
+    prior = Ellipsoid(jnp.asarray([1.0, 0.0]), 0.1 * jnp.eye(2))
+
+    def one(key):
+        states, ys = simulate_box_noise(
+            jax.random.split(key), f, lambda x: x[:1], jnp.asarray([1.0, 0.0]),
+            jnp.zeros((41, 1)), *bounds,
+        )  # fmt: skip
+        result = run(SetMembershipFilter(), model, ys[1:], prior=SetMembershipFilter().predict(
+            model, Ellipsoid(states[0], 0.01 * jnp.eye(2))
+        ))  # fmt: skip
+        return result.status, result.contains(states[1:])
+
+    status, inside = jax.jit(jax.vmap(one))(jax.random.split(jax.random.key(3), 50))
+    assert not np.any(np.asarray(status)) and np.all(np.asarray(inside))
+
+    @jax.jit
+    def log_volume(w):  # through a flat prediction at every step: no NaN from its solve
+        noisy = BoundedNoiseModel(f, lambda x: x[:1], bounds[0].at[1].set(w), bounds[1])
+        ys = jnp.linspace(0.5, 1.0, 15)[:, None]
+        return jnp.sum(
+            jnp.linalg.slogdet(run(SetMembershipFilter(), noisy, ys, prior=prior).shape)[1]
+        )
+
+    central = (log_volume(0.05 + 1e-6) - log_volume(0.05 - 1e-6)) / 2e-6
+    np.testing.assert_allclose(jax.grad(log_volume)(0.05), central, rtol=1e-6)
+    logistic = BoundedNoiseModel(lambda x: 3.7 * x * (1 - x), lambda x: x, [0.01], [0.05])
+    at, beside = (
+        SetMembershipFilter().predict(logistic, Ellipsoid(jnp.asarray([c]), jnp.asarray([[0.01]])))
+        for c in (0.5, 0.5 + 1e-9)
+    )
+    # beside it F = -7.4e-9 adds |F| sqrt(P) = 7.4e-10 to the half-width 0.047: 3e-8 relative
+    np.testing.assert_allclose(at.shape, beside.shape, rtol=1e-7)
+
+
 def test_float32_carries_sets_many_noise_widths_across():
     # process noise 0.0005, measurement noise 0.05: the first filtered sets are about 0.09 in
     # radius, 180 of the least half-width. float32 keeps the sets float64 keeps (the default

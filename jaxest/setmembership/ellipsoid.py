@@ -62,6 +62,23 @@ def add_box(
     return add_box_of_segments(shape, segments, shape_error)
 
 
+@jax.custom_jvp
+def _segment_norm(shape, direction):
+    """a = s^T P^-1 s of eq 17: inf, NaN or any number where P is singular."""
+    return direction @ spd_solve(shape, direction)
+
+
+@_segment_norm.defjvp
+def _segment_norm_jvp(primals, tangents):
+    """da = 2 x^T ds - x^T dP x, x = P^-1 s; none where the solve is not finite (p is then the
+    constant 1/(n - 1), :func:`add_box_of_segments`), instead of NaN through the singular solve."""
+    shape, direction = primals
+    d_shape, d_direction = tangents
+    solved = spd_solve(shape, direction)
+    x = jnp.where(jnp.all(jnp.isfinite(solved)), solved, 0.0)
+    return direction @ solved, 2 * x @ d_direction - x @ d_shape @ x
+
+
 @working_precision
 def add_box_of_segments(shape, segments, shape_error=None):
     """E(c, P) + the segments {t s_i : |t| <= 1} (rows of ``segments``) one at a time, each with
@@ -70,22 +87,48 @@ def add_box_of_segments(shape, segments, shape_error=None):
     recursion P_{i+1} = (1 + p_i) P_i + (1 + 1/p_i) s_i s_i^T: E_{i+1} = (1 + p_i) E_i +
     gamma_6 ((1 + p_i) |P_i| + (1 + 1/p_i) |s_i| |s_i|^T) (six roundings per entry, the
     symmetrisation included). A segment of infinite or NaN length (a remainder bound over a set
-    that holds a pole) makes the sum unbounded: the shape is +inf."""
+    that holds a pole) makes the sum unbounded: the shape is +inf.
+
+    A singular P (a flat set: F P F^T of a singular Jacobian, a state driven by noise alone)
+    with s outside its range has a = +inf, which the solve gives as inf, NaN or, rounded, any
+    number: wherever the computed a is not finite and positive for a nonzero segment, p takes
+    the limit 1/(n - 1), the least volume of the family as a -> inf, and for n = 1 the sum is the
+    interval (sqrt(P + E_P) + |s|)^2 itself. Any p > 0 bounds the sum for every positive
+    semidefinite P (Cauchy-Schwarz on the support functions), so an a that the solve got wrong
+    costs volume, never the guarantee."""
     n = shape.shape[-1]
+    dtype = shape.dtype
     error = jnp.zeros_like(shape) if shape_error is None else shape_error
     bounded = jnp.ones((), bool)
     for direction in segments:
-        a = direction @ spd_solve(shape, direction)
-        # a > 0 alone would skip an infinite or NaN segment as if it were zero
-        bounded = bounded & jnp.isfinite(a)
-        nonzero = a > 0
-        a_ = _safe(nonzero, a)
-        p = 2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_))
+        finite = jnp.all(jnp.isfinite(direction))
+        bounded = bounded & finite  # skipping it as if it were zero would lose the state
+        a = _segment_norm(shape, direction)
+        usable = jnp.isfinite(a) & (a > 0)
+        flat = finite & jnp.any(direction != 0) & ~usable
+        nonzero = usable | flat
         outer = jnp.outer(direction, direction)
+        if n == 1:
+            a_ = _safe(usable, a)
+            p = jnp.sqrt(a_)
+            extent = jnp.maximum(shape + error, 0)
+            positive = extent > 0  # sqrt' is infinite at 0: the derivative of |F| there is 0
+            root = jnp.where(positive, jnp.sqrt(_safe(positive, extent)), 0.0)
+            exact = (root + jnp.abs(direction)) ** 2
+        else:
+            a_ = _safe(usable, a)
+            p = jnp.where(
+                flat,
+                jnp.asarray(1 / (n - 1), dtype),
+                2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_)),
+            )
         grown = symmetrize((1 + p) * shape + (1 + 1 / p) * outer)
-        grown_error = (1 + p) * error + gamma(6, shape.dtype) * (
+        grown_error = (1 + p) * error + gamma(6, dtype) * (
             (1 + p) * jnp.abs(shape) + (1 + 1 / p) * jnp.abs(outer)
         )
+        if n == 1:  # E_P is inside the exact sum already
+            grown = jnp.where(flat, exact, grown)
+            grown_error = jnp.where(flat, gamma(6, dtype) * exact, grown_error)
         shape = jnp.where(nonzero, grown, shape)
         error = jnp.where(nonzero, grown_error, error)
     return jnp.where(bounded, outward(shape, error), jnp.inf)
