@@ -187,6 +187,7 @@ def run(
         raise ValueError(f"key: {type(estimator).__name__} samples; pass key=jax.random.key(...)")
     if state is None:
         estimator.check(model, ys, inputs, prior)
+        estimator = estimator.for_arguments(model, prior)
     if is_concrete(k0):  # also when resuming, which skips the estimator's checks
         index = np.asarray(k0)
         if index.dtype.kind not in "iu" or index.ndim != 0 or index < 0:

@@ -137,6 +137,26 @@ def test_vmap_and_float32():
     np.testing.assert_allclose(v32, v64, rtol=1e-5)
 
 
+@pytest.mark.parametrize("singular", ["zero_variance", "rank_one"])
+def test_a_singular_Q_is_left_to_autodiff_or_gives_nan_never_a_wrong_gradient(singular):
+    """(3) has no density at a singular Q (a noise that drives some states only). Where run sees
+    Q's values (closed over, also under jit) the gradient is autodiff's; where Q is traced, NaN.
+    The rule used to give NaN for the first and a wrong finite gradient for the second."""
+    model, prior, ys, inputs = problem(False)
+    Q = np.diag([0.0, 0.3, 0.2]) if singular == "zero_variance" else np.full((3, 3), 0.1)
+    model = eqx.tree_at(lambda m: m.Q, model, jnp.asarray(Q))
+
+    def scaled(filt):  # d log p / d(scale of F, H) with Q a constant
+        return jax.jit(jax.grad(lambda theta: loglik(filt)(
+            eqx.tree_at(lambda m: (m.F, m.H), model, (model.F * theta[0], model.H * theta[1])),
+            prior, ys, inputs,
+        )))(jnp.ones(2))  # fmt: skip
+
+    np.testing.assert_allclose(scaled(CLOSED_FORM), scaled(AUTODIFF), rtol=1e-12)
+    traced = grad_all(CLOSED_FORM, (model, prior, ys, inputs))[0]
+    assert np.all(np.isnan(np.asarray(traced.F)))
+
+
 def test_saving_nothing_runs_the_filter_once():
     """With ``SaveAt(fields=())`` (as ``neg_loglik`` runs it) the result holds no per-step
     arrays, and the gradient runs two scans, the filter's and the smoother's: ``run`` keeps

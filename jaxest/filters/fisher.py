@@ -37,8 +37,11 @@ and an identity elsewhere and whose H rows and innovation are zero there, so the
 add a constant and their entries of R, H, D and y_k get zero gradient, as in autodiff.
 
 (1) needs the filter's log-likelihood to be log p(y) exactly, which the Kalman filter's is on a
-linear-Gaussian model; models with a noise gain G are left to autodiff (G Q G^T may be singular,
-where (3) has no density). Cost: one RTS smoother and a batched (not sequential) evaluation of
+linear-Gaussian model, and (3) needs P0, Q_k and R_k to have densities. Models with a noise gain
+G are left to autodiff (G Q G^T may be singular), and so are runs whose P0 or Q is singular or
+nearly so (:func:`has_density`) where :func:`jaxest.run` sees their values
+(``KalmanFilter.for_arguments``); where it sees only tracers (under ``jit``), the rule's
+tangent is NaN at such a covariance rather than a wrong number. Cost: one RTS smoother and a batched (not sequential) evaluation of
 (3) over the steps, against autodiff's reverse sweep through every step of the filter.
 Covariance gradients are symmetric: they are the derivatives along symmetric perturbations (the
 filter uses P0 unsymmetrised, so autodiff's gradient for it need not be symmetric; the symmetric
@@ -83,6 +86,17 @@ def _expected_logpdf_terms(residual_mean, residual_cov, cov):
     return -0.5 * (logdet_chol(L) + jnp.sum(S_inv * second_moment)), S_inv, second_moment
 
 
+def has_density(cov) -> jax.Array:
+    """Whether eq (3) can be evaluated for S = ``cov``: its Cholesky factor exists, and the
+    squared ratio of its largest to its smallest pivot, a lower bound on cond(S), stays within
+    n cond eps <= 2^-10 (a singular Q, such as a noise that drives some states only, factors
+    with a pivot of rounding size, and (4) then multiplies rounding errors by S^-1)."""
+    diagonal = jnp.diagonal(cholesky(symmetrize(cov)))
+    n = diagonal.shape[-1]
+    kappa = (jnp.max(diagonal) / jnp.min(diagonal)) ** 2
+    return jnp.all(jnp.isfinite(diagonal)) & (n * kappa * jnp.finfo(diagonal.dtype).eps <= 2**-10)
+
+
 @expected_logpdf.defjvp
 def _expected_logpdf_jvp(primals, tangents):
     """dL/dS = 1/2 S^-1 (M - S) S^-1 (eq (4)), symmetrised, and the two gradients above. The
@@ -97,7 +111,8 @@ def _expected_logpdf_jvp(primals, tangents):
         - 0.5 * jnp.sum(S_inv * d_residual_cov)
         - jnp.vdot(mv(S_inv, residual_mean), d_mean)
     )
-    return value, tangent
+    # NaN, not a wrong number, where S has no density that (3) can use (:func:`has_density`)
+    return value, tangent * jnp.where(has_density(primals[2]), 1.0, jnp.nan)
 
 
 def expected_complete_loglik(model, prior, ys, inputs, ks, mo: SmootherResult):

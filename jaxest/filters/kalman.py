@@ -7,10 +7,14 @@ On a :class:`~jaxest.LinearGaussian` model each is an exact Kalman filter; on a
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxest._checks import is_concrete
 from jaxest.filters.base import (
     AbstractGaussianFilter,
     Covariance,
@@ -25,7 +29,7 @@ from jaxest.filters.common import (
     masked_measurement,
     step_status,
 )
-from jaxest.filters.fisher import fisher_loglik
+from jaxest.filters.fisher import fisher_loglik, has_density
 from jaxest.linalg import (
     cho_solve_lower,
     chol_inverse,
@@ -37,6 +41,9 @@ from jaxest.linalg import (
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.rts import NEEDED
 
+#: :func:`~jaxest.filters.fisher.has_density` of a stack of covariances, compiled once per shape
+_have_densities = jax.jit(jax.vmap(has_density))
+
 
 class KalmanFilter(AbstractGaussianFilter):
     """The conventional covariance-form Kalman filter (EKF on nonlinear models) with the Joseph
@@ -47,7 +54,10 @@ class KalmanFilter(AbstractGaussianFilter):
     differentiated by Fisher's identity (an RTS smoother, :mod:`jaxest.filters.fisher`) instead
     of autodiff through the steps: the same gradient, value_and_grad 1.3-2.3x faster in
     docs/performance.md. Every other output, and every other model, is differentiated by
-    autodiff. ``False``: autodiff everywhere.
+    autodiff, and so is a run whose P0 or Q is singular or nearly so where :func:`jaxest.run`
+    sees their values; under ``jit`` with such a covariance traced the rule's gradient is NaN
+    (:func:`jaxest.filters.fisher.has_density`): pass ``False`` there. ``False``: autodiff
+    everywhere.
     """
 
     factor_type = Covariance
@@ -62,6 +72,22 @@ class KalmanFilter(AbstractGaussianFilter):
 
     def _closed_form(self, model) -> bool:
         return self.closed_form_gradient and isinstance(model, LinearGaussian) and model.G is None
+
+    def for_arguments(self, model, prior) -> KalmanFilter:
+        """Autodiff instead of the Fisher rule where P0 or a Q_k that :func:`jaxest.run` sees
+        has no density the rule can use (:func:`jaxest.filters.fisher.has_density`)."""
+        if not self._closed_form(model):
+            return self
+        if not (is_concrete(prior.cov) and is_concrete(model.Q)):
+            return self  # under jit the rule's tangent is NaN at such a covariance instead
+        n = jnp.shape(prior.cov)[-1]
+        with jax.ensure_compile_time_eval():  # evaluated now, also inside a caller's jit
+            covariances = jnp.concatenate(
+                [jnp.reshape(c, (-1, n, n)) for c in (prior.cov, model.Q)]
+            )
+            if bool(jnp.all(_have_densities(covariances))):
+                return self
+        return dataclasses.replace(self, closed_form_gradient=False)
 
     def derivative_fields(self, model) -> tuple[str, ...]:
         return NEEDED if self._closed_form(model) else ()
