@@ -28,6 +28,19 @@ def is_concrete(x) -> bool:
     return not isinstance(x, jax.core.Tracer)
 
 
+def concrete_k0(k0, meaning: str) -> int | None:
+    """``k0`` as an int where its value is known now (``None`` for a tracer), after checking it
+    is a non-negative integer (``ValueError`` naming ``k0`` and what it indexes, ``meaning``)."""
+    if not is_concrete(k0):
+        return None
+    index = np.asarray(k0)
+    if index.dtype.kind not in "iu" or index.ndim != 0 or index < 0:
+        raise ValueError(
+            f"k0: expected a non-negative integer (the index of {meaning}), got {k0!r}"
+        )
+    return int(index)
+
+
 def check_positive_int(name: str, value) -> None:
     """``value`` is a Python int of at least 1 (a count: runs, iterations)."""
     if not isinstance(value, int) or value < 1:

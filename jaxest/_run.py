@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxest._checks import is_concrete
+from jaxest._checks import concrete_k0
 from jaxest._estimator import (
     AbstractAssociativeEstimator,
     AbstractEstimator,
@@ -188,13 +188,9 @@ def run(
     if state is None:
         estimator.check(model, ys, inputs, prior)
         estimator = estimator.for_arguments(model, prior)
-    if is_concrete(k0):  # also when resuming, which skips the estimator's checks
-        index = np.asarray(k0)
-        if index.dtype.kind not in "iu" or index.ndim != 0 or index < 0:
-            raise ValueError(
-                f"k0: expected a non-negative integer (the index of ys[0]), got {k0!r}"
-            )
-        estimator.check_steps(model, int(k0), np.shape(ys)[0])
+    first = concrete_k0(k0, "ys[0]")
+    if first is not None:  # also when resuming, which skips the estimator's checks
+        estimator.check_steps(model, first, np.shape(ys)[0])
     result = _run(
         estimator, model, jnp.asarray(ys), inputs, prior, state, k0, key,
         save or SaveAt(), parallel, checkpoint,

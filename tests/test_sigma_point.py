@@ -4,6 +4,7 @@ finite differences."""
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -358,6 +359,31 @@ def test_sigma_point_rts_equals_rts_on_linear_model(filt):
     np.testing.assert_allclose(smoothed.mean, ref.mean, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(smoothed.cov, ref.cov, rtol=1e-9, atol=1e-12)
     assert bool(smoothed.ok)
+
+
+def test_smoothers_read_a_time_varying_model_from_k0():
+    """A run resumed at k0 = 3 on a model with a time axis on F: every RTS smoother given that k0
+    equals the same smoother on the model cut at step 3 from k0 = 0 (they read F_0, F_1, ...
+    whatever the run's k0, and had no k0); a k0 past the time axis is refused."""
+    model, prior, ys = random_linear()
+    T = ys.shape[0]
+    scales = np.linspace(0.7, 1.1, T + 3)[:, None, None]
+    varying = eqx.tree_at(lambda m: m.F, model, jnp.asarray(scales * np.asarray(model.F)))
+    cut = eqx.tree_at(lambda m: m.F, model, varying.F[3:])
+    for filt, smooth in (
+        (je.KalmanFilter(), je.rts_smooth),
+        (je.KalmanFilter(), lambda *a, **k: je.rts_smooth(*a, **k, parallel=True)),
+        (je.UKF(alpha=0.5), lambda m, r, **k: je.sigma_point_rts_smooth(m, r, je.UKF(alpha=0.5), **k)),
+    ):  # fmt: skip
+        resumed = smooth(varying, je.run(filt, varying, ys, prior=prior, k0=3), k0=3)
+        reference = smooth(cut, je.run(filt, cut, ys, prior=prior))
+        np.testing.assert_allclose(resumed.mean, reference.mean, rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(resumed.cov, reference.cov, rtol=1e-12, atol=1e-14)
+    result = je.run(je.KalmanFilter(), varying, ys, prior=prior, k0=3)
+    with pytest.raises(ValueError, match="^model.F: time-varying with"):
+        je.rts_smooth(varying, result, k0=4)
+    with pytest.raises(ValueError, match="^k0: expected a non-negative integer"):
+        je.rts_smooth(varying, result, k0=-1)
 
 
 def numpy_urts(points, f, Q, filtered):

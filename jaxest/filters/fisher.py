@@ -152,7 +152,7 @@ def fisher_loglik(loglik, model, prior, ys, inputs, ks, filtered: FilterResult):
 def _fisher_loglik_jvp(primals, tangents):
     loglik, model, prior, ys, inputs, ks, filtered = primals
     _, d_model, d_prior, d_ys, d_inputs, _, _ = tangents
-    moments = rts_smooth(model, filtered, inputs=inputs)
+    moments = rts_smooth(model, filtered, inputs=inputs, k0=ks[0])
     _, tangent = jax.jvp(
         lambda *params: expected_complete_loglik(*params, ks, moments),
         (model, prior, ys, inputs),

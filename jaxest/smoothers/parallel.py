@@ -30,8 +30,8 @@ from jaxest.scan import associative_scan
 from jaxest.smoothers.rts import SmootherResult, smoother_gain, transition_cross_covariance
 
 
-def smoother_gains(model, result: FilterResult, inputs=None):
-    """Eq (1)'s RTS gains E_k, k = 0..T-2 (shape (T-1, n, n)), F_k linearised at x(k|k).
+def smoother_gains(model, result: FilterResult, inputs=None, k0=0):
+    """Eq (1)'s RTS gains E_k, k = k0..k0+T-2 (shape (T-1, n, n)), F_k linearised at x(k|k).
 
     Their batched Cholesky waits for every output of the filter: otherwise it can run beside the
     square-root parallel filter's batched QR of its outputs and deadlock jaxlib 0.10 on CPU
@@ -44,7 +44,8 @@ def smoother_gains(model, result: FilterResult, inputs=None):
     def gain(k, mean, cov, pred_cov_next, u):
         return smoother_gain(cross_covariance(k, mean, cov, u), pred_cov_next)
 
-    return jax.vmap(gain)(jnp.arange(T - 1), result.mean[:-1], result.cov[:-1], pred_cov, u_seq)
+    steps = k0 + jnp.arange(T - 1)
+    return jax.vmap(gain)(steps, result.mean[:-1], result.cov[:-1], pred_cov, u_seq)
 
 
 class SmootherElement(eqx.Module):
@@ -64,11 +65,11 @@ def combine(later: SmootherElement, earlier: SmootherElement) -> SmootherElement
 
 
 @eqx.filter_jit
-def parallel_rts_smooth(model, result: FilterResult, inputs=None):
+def parallel_rts_smooth(model, result: FilterResult, inputs=None, k0=0):
     """x(k|T), P(k|T) by the reverse associative scan of eqs (1)-(2) (a
     :class:`~jaxest.SmootherResult`); what :func:`~jaxest.rts_smooth` with ``parallel=True``
     runs."""
-    gains = smoother_gains(model, result, inputs)
+    gains = smoother_gains(model, result, inputs, k0)
     pred_mean, pred_cov = result.predicted_mean[1:], result.predicted_cov[1:]
     g = result.mean[:-1] - jnp.einsum("kij,kj->ki", gains, pred_mean)
     L = symmetrize(result.cov[:-1] - gains @ pred_cov @ jnp.swapaxes(gains, -1, -2))

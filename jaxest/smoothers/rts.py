@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_sequence, first_input, model_shapes
+from jaxest._checks import check_sequence, concrete_k0, first_input, model_shapes
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.linalg import (
@@ -27,7 +27,7 @@ from jaxest.linalg import (
     symmetrize,
     working_precision_by_default,
 )
-from jaxest.models import check_inputs_used
+from jaxest.models import check_inputs_used, check_time_axes
 
 
 class SmootherResult(eqx.Module):
@@ -51,11 +51,12 @@ class SmootherResult(eqx.Module):
 NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
 
 
-def check_smoother_arguments(smoother: str, model, result, inputs) -> None:
+def check_smoother_arguments(smoother: str, model, result, inputs, k0=0) -> None:
     """``result`` is a Gaussian filter's result holding the fields the smoothers read, of a
-    state the size ``model`` propagates, and ``inputs`` fit both (``ValueError`` naming the
-    argument: a particle filter's result raised an ``AttributeError``, a model of another
-    size a ``TypeError`` from inside the pass, and inputs to a model without B were ignored)."""
+    state the size ``model`` propagates, and ``inputs`` and ``k0`` fit both (``ValueError``
+    naming the argument: a particle filter's result raised an ``AttributeError``, a model of
+    another size a ``TypeError`` from inside the pass, and inputs to a model without B were
+    ignored)."""
     if not isinstance(result, FilterResult):
         raise ValueError(
             f"result: {smoother} smooths the FilterResult of a Gaussian filter, got "
@@ -80,30 +81,35 @@ def check_smoother_arguments(smoother: str, model, result, inputs) -> None:
         ) from err
     if f_shape != (n,):
         raise ValueError(f"model: propagates a state of shape {f_shape}, the result's has ({n},)")
+    first = concrete_k0(k0, "the result's first step, as given to run")
+    if first is not None:
+        check_time_axes(model, first, T)
 
 
 @working_precision_by_default
 def rts_smooth(
-    model, result: FilterResult, *, inputs=None, parallel: bool = False
+    model, result: FilterResult, *, inputs=None, k0=0, parallel: bool = False
 ) -> SmootherResult:
-    """Smooth a :class:`~jaxest.FilterResult` of ``model`` (``inputs`` as given to the filter).
+    """Smooth a :class:`~jaxest.FilterResult` of ``model`` (``inputs`` and ``k0``, the time index
+    of the result's first step, as given to :func:`jaxest.run`: a time-varying model is read at
+    steps k0, k0 + 1, ...).
 
     The result must hold the filtered and predicted means and covariances and the status
     (the default :class:`~jaxest.SaveAt`). Compiled once per model structure and shapes.
     ``parallel=True``: the same smoother as a reverse associative scan, O(log T) depth
     (:mod:`jaxest.smoothers.parallel`).
     """
-    check_smoother_arguments("rts_smooth", model, result, inputs)
+    check_smoother_arguments("rts_smooth", model, result, inputs, k0)
     if parallel:
         from jaxest.smoothers.parallel import parallel_rts_smooth
 
-        return parallel_rts_smooth(model, result, inputs)
-    return _rts_smooth(model, result, inputs)
+        return parallel_rts_smooth(model, result, inputs, k0)
+    return _rts_smooth(model, result, inputs, k0)
 
 
 @eqx.filter_jit
-def _rts_smooth(model, result: FilterResult, inputs) -> SmootherResult:
-    return backward_pass(result, inputs, transition_cross_covariance(model))
+def _rts_smooth(model, result: FilterResult, inputs, k0) -> SmootherResult:
+    return backward_pass(result, inputs, transition_cross_covariance(model), k0)
 
 
 def transition_cross_covariance(model):
@@ -121,12 +127,12 @@ def smoother_gain(cross_cov, pred_cov_next):
     return cho_solve_lower(cholesky(pred_cov_next), cross_cov.T).T
 
 
-def backward_pass(result: FilterResult, inputs, cross_covariance) -> SmootherResult:
+def backward_pass(result: FilterResult, inputs, cross_covariance, k0=0) -> SmootherResult:
     """The backward pass of the module docstring with C_k = D_k P(k+1|k)^-1, where
     D_k = ``cross_covariance(k, x(k|k), P(k|k), u_k)`` is the filter's covariance of x_k and
     x_{k+1} given y_0..y_k (P(k|k) F_k^T here; the sigma points' in
-    :mod:`jaxest.smoothers.sigma_point_rts`)."""
-    steps = jnp.arange(result.mean.shape[0] - 1)
+    :mod:`jaxest.smoothers.sigma_point_rts`), k counted from ``k0``."""
+    steps = k0 + jnp.arange(result.mean.shape[0] - 1)
     u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
 
     def backward(carry, args):

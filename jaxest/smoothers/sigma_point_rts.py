@@ -26,10 +26,11 @@ from jaxest.smoothers.rts import SmootherResult, backward_pass, check_smoother_a
 
 @working_precision_by_default
 def sigma_point_rts_smooth(
-    model, result: FilterResult, filter: AbstractSigmaPointFilter, *, inputs=None
+    model, result: FilterResult, filter: AbstractSigmaPointFilter, *, inputs=None, k0=0
 ) -> SmootherResult:
     """Smooth the :class:`~jaxest.FilterResult` that ``filter`` (a sigma-point filter: its point
-    set, form and noise mode are reused) produced on ``model`` (``inputs`` as given to it).
+    set, form and noise mode are reused) produced on ``model`` (``inputs`` and ``k0`` as given
+    to :func:`jaxest.run`).
 
     The result must hold the filtered and predicted means and covariances and the status (the
     default :class:`~jaxest.SaveAt`).
@@ -39,12 +40,12 @@ def sigma_point_rts_smooth(
             f"filter: expected a sigma-point filter (UKF, CubatureKF, GaussHermiteKF), "
             f"got {type(filter).__name__}; use jaxest.rts_smooth for the others"
         )
-    check_smoother_arguments("sigma_point_rts_smooth", model, result, inputs)
-    return _smooth(model, result, filter, inputs)
+    check_smoother_arguments("sigma_point_rts_smooth", model, result, inputs, k0)
+    return _smooth(model, result, filter, inputs, k0)
 
 
 @eqx.filter_jit
-def _smooth(model, result: FilterResult, filter: AbstractSigmaPointFilter, inputs):
+def _smooth(model, result: FilterResult, filter: AbstractSigmaPointFilter, inputs, k0):
     form = filter.factor_form()
 
     def cross_covariance(k, mean, cov, u):  # D_k of the module docstring
@@ -52,7 +53,7 @@ def _smooth(model, result: FilterResult, filter: AbstractSigmaPointFilter, input
         dF = FX - jnp.asarray(Wm, FX.dtype) @ FX
         return dX.T @ (jnp.asarray(Wc, FX.dtype)[:, None] * dF)
 
-    return backward_pass(result, inputs, cross_covariance)
+    return backward_pass(result, inputs, cross_covariance, k0)
 
 
 __all__ = ["sigma_point_rts_smooth"]
