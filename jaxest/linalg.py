@@ -135,6 +135,20 @@ def _factor_psd_jvp(primals, tangents):
     return (U, D), cov_tangent_to_factor(U, D, symmetrize(dP))
 
 
+def factor_psd_or_nan(P):
+    """:func:`factor_psd`, with D NaN where P is indefinite beyond rounding: an eigenvalue below
+    about -64 n eps max|P_ij|, seen as the part of P the clipped factors miss. For the noise and
+    prior covariances the SVD filters factor, which must be positive semidefinite: clipping
+    would change the model silently under ``jit`` (where the argument checks cannot see values);
+    a NaN shows in the step's status instead."""
+    U, D = factor_psd(P)
+    n = P.shape[-1]
+    scale = jnp.max(jnp.abs(P), axis=(-2, -1))
+    missed = jnp.max(jnp.abs(symmetrize(P) - cov_from_factor(U, D)), axis=(-2, -1))
+    indefinite = missed > 64 * n * jnp.finfo(P.dtype).eps * scale
+    return U, jnp.where(indefinite[..., None], jnp.nan, D)
+
+
 def right_svd(A):
     """Singular values s (descending) and right singular vectors V of a tall A (p >= n), so
     A^T A = V diag(s)^2 V^T: :func:`jacobi_svd` for at most ``SMALL_FACTOR`` columns and

@@ -269,6 +269,27 @@ def test_status_flags_nonfinite_inside_jit():
     assert "NONFINITE" in je.Status.describe(int(res.status[0]))
 
 
+@pytest.mark.parametrize("Filter", [SVDEKF, ImprovedSVDKF], ids=lambda f: f.__name__)
+def test_indefinite_covariances_inside_jit_are_flagged_not_repaired(Filter):
+    """R, Q or P0 with a negative eigenvalue, traced (the argument checks cannot see it): the SVD
+    filters' status says so from the first step, where they used to clip the eigenvalue to 0
+    and run on another model with status OK. A positive semidefinite Q of rank one, formed with
+    rounding, still runs cleanly."""
+    model, prior, sim = linear_problem(seed=11, n=3, m=2, T=10)
+    flip = jnp.diag(jnp.asarray([1.0, 1.0, -1.0]))
+    run = jax.jit(lambda m, p: je.run(Filter(), m, sim.y, prior=p))
+    for bad_model, bad_prior in (
+        (je.LinearGaussian(model.F, model.H, model.Q, model.R * jnp.asarray([1.0, -1.0])), prior),
+        (je.LinearGaussian(model.F, model.H, flip @ model.Q @ flip - 0.5 * jnp.eye(3), model.R), prior),
+        (model, je.Gaussian(prior.mean, flip * prior.cov)),
+    ):  # fmt: skip
+        status = np.asarray(run(bad_model, bad_prior).status)
+        assert status[0] != je.Status.OK
+    v = jnp.asarray([0.3, -0.1, 0.7])
+    rank_one = je.LinearGaussian(model.F, model.H, 0.1 * jnp.outer(v, v), model.R)
+    assert int(run(rank_one, prior).any_status) == 0
+
+
 @pytest.mark.parametrize(
     "estimator",
     [F() for F in FILTERS] + [je.UKF(form="sqrt"), je.ParallelKalmanFilter()],

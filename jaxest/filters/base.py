@@ -20,7 +20,14 @@ from jaxtyping import Array, Float, Int
 from jaxest._checks import check_gaussian_arguments, check_gaussian_prior
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status
-from jaxest.linalg import FACTORS, chol_inverse, cholesky, cov_from_factor, factor_psd, inv_spd
+from jaxest.linalg import (
+    FACTORS,
+    chol_inverse,
+    cholesky,
+    cov_from_factor,
+    factor_psd_or_nan,
+    inv_spd,
+)
 
 
 class AbstractCovarianceFactor(eqx.Module):
@@ -69,7 +76,8 @@ class SVDFactor(AbstractCovarianceFactor):
 
     @classmethod
     def from_cov(cls, P):
-        return cls(*factor_psd(P))
+        """U, D of P; D NaN for an indefinite P (:func:`~jaxest.linalg.factor_psd_or_nan`)."""
+        return cls(*factor_psd_or_nan(P))
 
     @property
     def cov(self):

@@ -32,7 +32,7 @@ from jaxest.linalg import (
     cholesky,
     cov_from_factor,
     cov_tangent_to_factor,
-    factor_psd,
+    factor_psd_or_nan,
     factor_tangent_to_cov,
     keep_factors,
     logdet_chol,
@@ -49,8 +49,9 @@ def svd_time_update(U, D, F, noise_rows):
 
 
 def sqrt_rows(M):
-    """Rows C with C^T C = M for a symmetric PSD M, from its symmetric SVD: diag(s)^1/2 V^T."""
-    V, s = factor_psd(M)
+    """Rows C with C^T C = M for a symmetric PSD M, from its symmetric SVD: diag(s)^1/2 V^T
+    (NaN for an indefinite M: :func:`~jaxest.linalg.factor_psd_or_nan`)."""
+    V, s = factor_psd_or_nan(M)
     return s[:, None] * V.T
 
 
