@@ -242,13 +242,26 @@ def gaussian_noise(key, cov):
 
 def check_inputs_used(model, inputs):
     """Raise ``ValueError`` where ``inputs`` are given to a linear model without B and D, which
-    would ignore them (a user who forgot B would get estimates without the inputs' effect)."""
+    would ignore them (a user who forgot B would get estimates without the inputs' effect), or
+    where B (n x p) or D (m x p) does not fit the state, the measurements or the inputs' width
+    p: the products would broadcast a size 1 (B of one column took the sum of two inputs)."""
     linear = isinstance(model, LinearGaussian)
     if inputs is not None and linear and model.B is None and model.D is None:
         raise ValueError(
             "inputs: the model has no input matrices (model.B and model.D are None), so the "
             "inputs would be ignored; give LinearGaussian(..., B=...) or drop inputs"
         )
+    if not linear or len(getattr(inputs, "shape", ())) != 2:  # (T, p); others: check_sequence
+        return
+    for name, matrix, rows in (("B", model.B, model.F), ("D", model.D, model.H)):
+        if matrix is None:
+            continue
+        expected = (jnp.shape(rows)[-2], jnp.shape(inputs)[-1])
+        if jnp.shape(matrix)[-2:] != expected:
+            raise ValueError(
+                f"model.{name}: expected trailing shape {expected} (rows of model."
+                f"{'F' if name == 'B' else 'H'}, the inputs' width), got {jnp.shape(matrix)}"
+            )
 
 
 def check_time_axis(name: str, matrix, first: int, count: int, ndim: int = 2) -> None:

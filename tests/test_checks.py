@@ -91,6 +91,31 @@ def test_inputs_to_a_linear_model_without_input_matrices_are_rejected():
         je.simulate(model, prior, 10, jax.random.key(0), inputs=jnp.ones((10, 1)))
 
 
+def test_input_matrices_must_fit_the_inputs_width_and_the_state():
+    """B (n x p) and D (m x p) against the inputs' width p: a B of one column with two inputs
+    took their sum (the product broadcast the size 1), with status OK."""
+    model, ys, prior = good()
+    two = jnp.ones((10, 2))
+    cases = [
+        (dict(B=jnp.ones((2, 1))), two, r"^model.B: expected trailing shape \(2, 2\)"),
+        (
+            dict(B=jnp.ones((2, 2))),
+            jnp.ones((10, 1)),
+            r"^model.B: expected trailing shape \(2, 1\)",
+        ),
+        (dict(B=jnp.ones((1, 2))), two, r"^model.B: expected trailing shape \(2, 2\)"),
+        (dict(D=jnp.ones((1, 1))), two, r"^model.D: expected trailing shape \(1, 2\)"),
+    ]
+    for matrices, inputs, message in cases:
+        wrong = je.LinearGaussian(model.F, model.H, model.Q, model.R, **matrices)
+        with pytest.raises(ValueError, match=message):
+            je.run(KalmanFilter(), wrong, ys, inputs=inputs, prior=prior)
+        with pytest.raises(ValueError, match=message):
+            je.simulate(wrong, prior, 10, jax.random.key(0), inputs=inputs)
+    fits = je.LinearGaussian(model.F, model.H, model.Q, model.R, B=jnp.ones((2, 2)))
+    assert bool(je.run(KalmanFilter(), fits, ys, inputs=two, prior=prior).ok)
+
+
 def test_simulate_names_an_initial_state_of_the_wrong_size():
     model, _, _ = good()  # it raised a TypeError from inside the traced scan
     with pytest.raises(ValueError, match=r"^x0: expected shape \(2,\)"):
