@@ -322,6 +322,25 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
         assert np.isfinite(g) and g != 0.0
 
 
+def test_filter_names_the_argument_that_does_not_fit(chain3):
+    """Measurements of the wrong width broadcast through eq 9 with status OK, and gains, a
+    structure or a prior of the wrong size failed inside the trace without naming themselves."""
+    system, structure, mean0, cov0, des = chain3
+    _, ys = simulate_network(system, mean0, cov0, DT, 20, jax.random.key(0))
+    prior = Gaussian(mean0, cov0)
+    gains = des.gains[0]
+    cases = [
+        (NetworkFilter(structure, gains, DT), ys[..., :1], prior, r"^ys: expected shape \(T, 3, 5\)"),
+        (NetworkFilter(structure, gains[..., :2], DT), ys, prior, r"^gains: expected shape \(3, 2, 5\)"),
+        (NetworkFilter(CommunicationStructure.chain(2), gains, DT), ys, prior, r"^structure: has 2"),
+        (NetworkFilter(structure, gains, DT), ys, Gaussian(mean0[:, :1], cov0), r"^prior.mean:"),
+        (NetworkFilter(structure, gains, -DT), ys, prior, r"^dt: must be positive"),
+    ]  # fmt: skip
+    for filt, measurements, start, message in cases:
+        with pytest.raises(ValueError, match=message):
+            run(filt, system, measurements, prior=start)
+
+
 def test_monte_carlo_matches_designed_cost(chain3):
     """Empirical error covariance of the sampled filter matches the designed P (eqs 28-31).
 

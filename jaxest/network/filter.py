@@ -96,11 +96,20 @@ class NetworkFilter(AbstractEstimator):
             raise ValueError(f"model: expected a LargeScaleSystem, got {type(model).__name__}")
         if not isinstance(prior, Gaussian):
             raise ValueError(f"prior: expected jaxest.Gaussian(mean, cov), got {type(prior)}")
-        N = model.num_nodes
-        if np.ndim(prior.mean) != 2 or np.shape(prior.mean)[0] != N:
-            raise ValueError(f"prior.mean: expected shape ({N}, n), got {np.shape(prior.mean)}")
-        if np.ndim(ys) != 3 or np.shape(ys)[1] != N:
-            raise ValueError(f"ys: expected shape (T, {N}, q), got {np.shape(ys)}")
+        N, n, q = model.num_nodes, model.state_dim, model.obs_dim
+        if np.shape(prior.mean) != (N, n):
+            raise ValueError(f"prior.mean: expected shape ({N}, {n}), got {np.shape(prior.mean)}")
+        if np.ndim(ys) != 3 or np.shape(ys)[1:] != (N, q):
+            raise ValueError(f"ys: expected shape (T, {N}, {q}), got {np.shape(ys)}")
+        if self.structure.num_nodes != N:
+            raise ValueError(f"structure: has {self.structure.num_nodes} nodes, the model {N}")
+        if np.shape(self.gains)[-3:] != (N, n, q) or np.ndim(self.gains) not in (3, 4):
+            raise ValueError(
+                f"gains: expected shape ({N}, {n}, {q}) or (T, {N}, {n}, {q}), got "
+                f"{np.shape(self.gains)}"
+            )
+        if not self.dt > 0:
+            raise ValueError(f"dt: must be positive (the sample interval), got {self.dt}")
         check_complete(ys, "the gains are designed for every node measuring at every sample")
 
     def check_steps(self, model, first: int, count: int) -> None:
