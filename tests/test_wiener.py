@@ -404,6 +404,13 @@ def test_bad_arguments_name_the_argument():
         wiener_smooth(model, ys, start="optimal")
     with pytest.raises(ValueError, match="^ys:"):
         wiener_smooth(model, jnp.zeros((20, 2)), prior=prior)
+    # a missing or infinite sample made every start's output NaN without a word
+    initial = jnp.zeros((2, 2))
+    for bad, message in ((jnp.nan, "^ys: has missing"), (jnp.inf, "^ys: contains")):
+        for options in (dict(prior=prior), dict(initial_values=initial, start="arbitrary",
+                                                end_term=False)):  # fmt: skip
+            with pytest.raises(ValueError, match=message):
+                wiener_smooth(model, ys.at[3, 0].set(bad), **options)
     with_input = je.LinearGaussian(
         F=model.F, H=model.H, Q=model.Q, R=model.R, G=model.G, B=jnp.ones((2, 1))
     )

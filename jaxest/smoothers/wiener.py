@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxest._checks import check_complete, check_measurements
 from jaxest._priors import Gaussian
 from jaxest.filters.steady_state import SteadyStateGain, steady_state_gain
 from jaxest.linalg import working_precision_by_default
@@ -235,6 +236,8 @@ def wiener_smooth(
     n, m = smoother.order, model.H.shape[0]
     if jnp.ndim(ys) != 2 or jnp.shape(ys)[1] != m:
         raise ValueError(f"ys: expected shape (T, {m}), got {jnp.shape(ys)}")
+    check_measurements(ys)  # before optimal_start's jit, inside which the values are unknown
+    check_complete(ys, "the Wiener smoother's lagged sums (eq 10) need every sample")
     if start != "optimal" and (initial_values is None or jnp.shape(initial_values) != (n, n)):
         raise ValueError(
             f"initial_values: start={start!r} needs an ({n}, {n}) array x(0|N)..x({n - 1}|N)"
