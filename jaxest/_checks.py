@@ -84,6 +84,8 @@ def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=F
                 raise ValueError(f"{name}: expected trailing shape {tuple(shape)}, got {arr.shape}")
     if (square or spd or psd) and trailing[-1] != trailing[-2]:
         raise ValueError(f"{name}: must be square, got shape {arr.shape}")
+    if jnp.issubdtype(arr.dtype, jnp.complexfloating):
+        raise ValueError(f"{name}: must be real, got dtype {arr.dtype}")
     if not is_concrete(arr):
         return
     a = np.asarray(arr, dtype=np.float64)

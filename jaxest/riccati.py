@@ -475,6 +475,8 @@ def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
             raise ValueError(f"{name}: expected a matrix, got shape {np.shape(value)}")
     check_matrix(names[0], A, square=True)
     n = np.shape(A)[0]
+    if n == 0:
+        raise ValueError(f"{names[0]}: has no states (shape {np.shape(A)})")
     m, n_of_B = np.shape(B) if filter_form else np.shape(B)[::-1]
     if n_of_B != n:
         side = "columns" if filter_form else "rows"
@@ -482,6 +484,7 @@ def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
             f"{names[1]}: expected {n} {side} to match {names[0]} ({n} x {n}), "
             f"got shape {np.shape(B)}"
         )
+    check_matrix(names[1], B)  # finite and real
     check_matrix(names[2], Q, (n, n), psd=True)
     check_matrix(names[3], R, (m, m), spd=True)
     dtype = jnp.result_type(A, B, Q, R, jnp.zeros((), jnp.float32))

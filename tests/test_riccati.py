@@ -314,6 +314,12 @@ def test_stable_modes_need_neither_control_nor_observation():
         ((np.eye(2), np.ones((2, 1)), np.eye(2), -np.eye(1)), "R"),
         ((np.eye(2), np.ones((2, 1)), np.array([[1.0, 2.0], [0.0, 1.0]]), np.eye(1)), "Q"),
         ((np.eye(2), np.ones(2), np.eye(2), np.eye(1)), "B"),
+        # these raised an SVD LinAlgError (NaN), gave a status (inf), a TypeError from the
+        # solver's loop (complex) and a NumPy reduction error (no states)
+        ((np.eye(2), np.array([[np.nan], [1.0]]), np.eye(2), np.eye(1)), "B"),
+        ((np.eye(2), np.array([[np.inf], [1.0]]), np.eye(2), np.eye(1)), "B"),
+        ((np.eye(2) + 0j, np.ones((2, 1)), np.eye(2), np.eye(1)), "A"),
+        ((np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((0, 0)), np.eye(1)), "A"),
     ],
 )
 def test_bad_arguments_name_the_argument(args, name):
