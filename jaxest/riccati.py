@@ -82,10 +82,13 @@ RiccatiStatus = Status.extend(
     "RiccatiStatus",
     NOT_STABILISING=(
         64,
-        "the closed loop A - B K is not stable (within 10 sqrt(eps)): no stabilising solution "
-        "exists -- a mode of A outside the stability region is not controllable through B, or "
-        "a mode on its boundary is not observable through Q; call the solver with concrete "
-        "arguments to have the mode named",
+        "the closed loop A - B K is not stable (within 10 sqrt(eps), relative to |A - B K| "
+        "in continuous time): no stabilising solution exists -- a mode of A outside the "
+        "stability region is not controllable through B, or a mode on its boundary is not "
+        "observable through Q; call the solver with concrete arguments to have the mode "
+        "named -- or, in continuous time, a stiff loop whose slowest mode is that close to 0 "
+        "next to its fastest (Re -1.4e-3 beside -1e5), whose stability the margin cannot "
+        "certify",
     ),
     INACCURATE=(
         128,
