@@ -9,6 +9,7 @@ built-in ones.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -123,8 +124,10 @@ def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""
 
 
 def check_measurements(ys):
-    """``ys`` is (T, m) and has no +-inf (NaN marks a missing entry; inf is an error)."""
+    """``ys`` is (T, m), real, and has no +-inf (NaN marks a missing entry; inf is an error)."""
     check_sequence("ys", ys)
+    if jnp.issubdtype(jnp.result_type(ys), jnp.complexfloating):
+        raise ValueError(f"ys: must be real, got {jnp.result_type(ys)}")
     if is_concrete(ys) and np.any(np.isinf(np.asarray(ys, dtype=np.float64))):
         raise ValueError("ys: contains +-inf entries (only NaN marks a missing measurement)")
 
@@ -143,6 +146,10 @@ def check_gaussian_prior(prior, n: int | None = None) -> int:
     if np.ndim(prior.mean) != 1:
         raise ValueError(f"prior.mean: expected a vector, got shape {np.shape(prior.mean)}")
     size = np.shape(prior.mean)[0]
+    if not jnp.issubdtype(jnp.result_type(prior.mean), jnp.floating):
+        raise ValueError(
+            f"prior.mean: must be real floating point, got {jnp.result_type(prior.mean)}"
+        )
     if n is not None and size != n:
         raise ValueError(f"prior.mean: expected shape ({n},) to match the model, got ({size},)")
     if np.ndim(prior.cov) != 2:
@@ -174,6 +181,7 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     check_inputs_used(model, inputs)
     n = linear_state_dim(model, prior) if isinstance(model, LinearGaussian) else None
     n = check_gaussian_prior(prior, n)
+    check_precision(model, ys, prior)
     u0 = None if inputs is None else jax.tree.map(first_input, inputs)
     shapes = model_shapes(model, prior.mean, u0)
     m = shapes["h(x)"][0]
@@ -192,6 +200,20 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
                 f"size {n} (prior.mean) and {m} measurements"
             )
     check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
+
+
+def check_precision(model, ys, prior) -> None:
+    """The prior in the widest precision of the model's arrays, the measurements and itself:
+    a narrower one (a float32 prior with a float64 model) made the filters' state change dtype
+    after one step, a TypeError from inside the scan."""
+    arrays = [a for a in jax.tree.leaves(model) if eqx.is_inexact_array(a)]
+    widest = jnp.result_type(prior.mean, prior.cov, ys, *arrays)
+    own = jnp.result_type(prior.mean, prior.cov)
+    if own != widest:
+        raise ValueError(
+            f"prior: is {own}, narrower than the model's arrays or the measurements ({widest}); "
+            f"give all of them one precision"
+        )
 
 
 def linear_state_dim(model: LinearGaussian, prior) -> int:

@@ -116,6 +116,24 @@ def test_input_matrices_must_fit_the_inputs_width_and_the_state():
     assert bool(je.run(KalmanFilter(), fits, ys, inputs=two, prior=prior).ok)
 
 
+def test_dtypes_that_do_not_fit_are_named():
+    """A float32 prior with a float64 model, an integer prior mean and complex measurements
+    raised a TypeError from inside the scan (the state changed dtype after one step), and the
+    parallel filter returned a complex log-likelihood."""
+    model, ys, prior = good()
+    narrow = je.Gaussian(prior.mean.astype(jnp.float32), prior.cov.astype(jnp.float32))
+    integer = je.Gaussian(jnp.zeros(2, jnp.int32), prior.cov)
+    for estimator in (KalmanFilter(), je.ParallelKalmanFilter()):
+        with pytest.raises(ValueError, match="^prior: is float32, narrower than"):
+            je.run(estimator, model, ys, prior=narrow)
+        with pytest.raises(ValueError, match="^prior.mean: must be real floating point"):
+            je.run(estimator, model, ys, prior=integer)
+        with pytest.raises(ValueError, match="^ys: must be real"):
+            je.run(estimator, model, ys.astype(jnp.complex128), prior=prior)
+    single = jax.tree.map(lambda a: a.astype(jnp.float32), (model, ys, prior))
+    assert bool(je.run(KalmanFilter(), single[0], single[1], prior=single[2]).ok)
+
+
 def test_simulate_names_an_initial_state_of_the_wrong_size():
     model, _, _ = good()  # it raised a TypeError from inside the traced scan
     with pytest.raises(ValueError, match=r"^x0: expected shape \(2,\)"):
