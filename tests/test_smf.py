@@ -312,6 +312,17 @@ def test_arguments_are_checked_before_tracing():
     with pytest.raises(ValueError, match="process_bound"):
         bad = BoundedNoiseModel(model.f, model.h, -model.process_bound, model.measurement_bound)
         set_membership_filter(bad, jnp.zeros((5, 2)), prior=prior)
+    # these ran: NaN sets with a status at every step, a radius limit squared (-1 acted as 1)
+    # or NaN (every set unbounded), and a TypeError from inside the scan
+    with pytest.raises(ValueError, match="^prior.center: contains NaN"):
+        nan_center = Ellipsoid(prior.center.at[0].set(jnp.nan), prior.shape)
+        set_membership_filter(model, jnp.zeros((5, 2)), prior=nan_center)
+    for radius in (-1.0, float("nan"), 0.0):
+        with pytest.raises(ValueError, match="^max_radius: must be a positive number"):
+            SetMembershipFilter(max_radius=radius)
+    with pytest.raises(ValueError, match="^prior: is float32, narrower"):
+        narrow = Ellipsoid(prior.center.astype(jnp.float32), prior.shape.astype(jnp.float32))
+        set_membership_filter(model, jnp.zeros((5, 2)), prior=narrow)
 
 
 @pytest.mark.slow

@@ -50,8 +50,10 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxest._checks import check_matrix, check_sequence, is_concrete
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._run import run
 from jaxest._status import finite_status as check_finite_status
@@ -199,6 +201,11 @@ class SetMembershipFilter(AbstractEstimator):
     max_radius: float | None = None
     recover: bool = eqx.field(static=True, default=True)
     default_fields = ("center", "shape", "remainder", "measurement_remainder", "status")
+
+    def __check_init__(self):
+        if self.max_radius is not None and is_concrete(self.max_radius):
+            if not (np.ndim(self.max_radius) == 0 and 0 < float(self.max_radius) < np.inf):
+                raise ValueError(f"max_radius: must be a positive number, got {self.max_radius!r}")
 
     def init(self, model: BoundedNoiseModel, prior: Ellipsoid) -> SMFState:
         center, shape = jnp.asarray(prior.center), jnp.asarray(prior.shape)
@@ -385,10 +392,6 @@ def set_membership_filter(
 
 def check_smf_arguments(model, ys, prior, inputs):
     """Raise ``ValueError`` naming the argument for malformed SMF arguments."""
-    import numpy as np
-
-    from jaxest._checks import check_matrix, check_sequence, is_concrete
-
     if not isinstance(model, BoundedNoiseModel):
         raise ValueError(f"model: expected a BoundedNoiseModel, got {type(model).__name__}")
     if not isinstance(prior, Ellipsoid):
@@ -408,7 +411,16 @@ def check_smf_arguments(model, ys, prior, inputs):
         check_sequence("inputs", inputs, length=np.shape(ys)[0])
     if np.shape(prior.center) != (n,):
         raise ValueError(f"prior.center: expected shape ({n},), got {np.shape(prior.center)}")
+    if is_concrete(prior.center) and not np.all(np.isfinite(np.asarray(prior.center, float))):
+        raise ValueError("prior.center: contains NaN or infinite entries")
     check_matrix("prior.shape", prior.shape, (n, n), spd=True)
+    own = jnp.result_type(prior.center, prior.shape)
+    widest = jnp.result_type(own, ys, model.process_bound, model.measurement_bound)
+    if own != widest:
+        raise ValueError(
+            f"prior: is {own}, narrower than the model's bounds or the measurements ({widest});"
+            f" give all of them one precision"
+        )
     u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
     for name, fn, size in (("model.f", model.f, n), ("model.h", model.h, m)):
         try:
