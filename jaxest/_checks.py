@@ -43,8 +43,8 @@ def concrete_k0(k0, meaning: str) -> int | None:
 
 
 def check_positive_int(name: str, value) -> None:
-    """``value`` is a Python int of at least 1 (a count: runs, iterations)."""
-    if not isinstance(value, int) or value < 1:
+    """``value`` is a Python int of at least 1 (a count: runs, iterations; not a bool)."""
+    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
         raise ValueError(f"{name}: must be a positive integer, got {value!r}")
 
 

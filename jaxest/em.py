@@ -205,6 +205,12 @@ def _check(model, ys, prior, num_iters, fixed, inputs):
     check_gaussian_prior(prior, model.F.shape[-1])
     check_gaussian_arguments(model, ys, inputs, prior)
     check_complete(ys, "fit_em needs complete measurements")
+    dynamics = ({"F", "Q"} | ({"B"} if model.B is not None else set())) - set(fixed)
+    if dynamics and np.shape(ys)[0] < 2:
+        raise ValueError(
+            f"ys: has {np.shape(ys)[0]} steps; estimating {sorted(dynamics)} needs a transition "
+            f"(at least 2 steps), or hold them in fixed"
+        )
 
 
 __all__ = ["EMResult", "fit_em"]

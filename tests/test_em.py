@@ -121,3 +121,8 @@ def test_errors_name_the_argument():
         je.fit_em(init, ys, prior=prior, num_iters=2, inputs=jnp.ones((20, 1)))
     with pytest.raises(ValueError, match="prior"):
         je.fit_em(init, ys, prior=je.Gaussian(jnp.zeros(2), jnp.eye(2)), num_iters=2)
+    # one step has no transition to estimate F and Q from: they came out NaN without a word
+    with pytest.raises(ValueError, match=r"^ys: has 1 steps; estimating \['F', 'Q'\]"):
+        je.fit_em(init, ys[:1], prior=prior, num_iters=2)
+    with pytest.raises(ValueError, match="^num_iters: must be a positive integer, got True"):
+        je.fit_em(init, ys, prior=prior, num_iters=True)
