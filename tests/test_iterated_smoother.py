@@ -142,3 +142,5 @@ def test_argument_errors():
         je.iterated_smooth(model, ys[:, None], prior=prior)
     with pytest.raises(ValueError, match="prior"):
         je.iterated_smooth(model, ys, prior=(prior.mean, prior.cov))
+    with pytest.raises(ValueError, match="^ys: has no steps"):  # a TypeError from the trace
+        je.iterated_smooth(model, ys[:0], prior=prior)

@@ -226,6 +226,8 @@ def test_errors_name_the_argument():
     lean = je.run(je.KalmanFilter(), plain, full, prior=prior, save=je.SaveAt(fields=("mean",)))
     with pytest.raises(ValueError, match="result"):
         je.rts_smooth(plain, lean, parallel=True)
+    with pytest.raises(ValueError, match=r"^ys: has no steps"):  # an IndexError inside the scan
+        je.run(je.ParallelKalmanFilter(), plain, full[:0], prior=prior)
 
 
 def test_twenty_states_square_root_filter_and_parallel_smoother_finish():

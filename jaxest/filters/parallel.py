@@ -378,6 +378,8 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
                 f"got {type(model).__name__}"
             )
         check_gaussian_arguments(model, ys, inputs, prior, positive_Q=self.square_root)
+        if jnp.shape(ys)[0] == 0:
+            raise ValueError("ys: has no steps (T = 0): the associative scan needs one")
 
 
 __all__ = ["ParallelFilterResult", "ParallelKalmanFilter", "ParallelStatus"]

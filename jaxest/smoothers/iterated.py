@@ -135,6 +135,8 @@ def iterated_smooth(
     """
     check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel)
     check_positive_int("num_iters", num_iters)
+    if np.shape(ys)[0] == 0:
+        raise ValueError("ys: has no steps (T = 0), nothing to smooth")
     ys = jnp.asarray(ys)
     T, n = ys.shape[0], prior.mean.shape[0]
     dtype = jnp.result_type(prior.mean, ys)
