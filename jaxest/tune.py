@@ -20,7 +20,13 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from jaxest._checks import check_matrix, check_nonnegative_int, check_positive_int, is_concrete
+from jaxest._checks import (
+    check_matrix,
+    check_measurements,
+    check_nonnegative_int,
+    check_positive_int,
+    is_concrete,
+)
 from jaxest._run import SaveAt, run
 
 PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
@@ -189,6 +195,8 @@ def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool | No
             f"ys: expected a batch of shape (runs, T, m), got {np.shape(ys)} (one sequence: "
             f"ys[None])"
         )
+    # the runs' values are tracers under the vmap below: checked here, as run would one of them
+    check_measurements(jnp.reshape(ys, (-1, np.shape(ys)[-1])))
 
     def values(model):
         def one(y, u):

@@ -116,6 +116,8 @@ def test_losses_and_fit_name_bad_arguments():
         ("^free: 'R' is not one of the fitted", lambda: fit(truth, loss, ["Q"], free={"R": jnp.ones((1, 1))})),
         ("^num_steps", lambda: fit(truth, loss, ["Q"], num_steps=-1)),
         ("^count", lambda: je.log_variance_standard_errors(truth, loss, 0)),
+        # the runs are traced under the losses' vmap: an infinite entry gave a NaN loss
+        ("^ys: contains \\+-inf", lambda: neg_loglik(KalmanFilter(), sims.y.at[1, 3, 0].set(jnp.inf), prior=prior)),
     ]  # fmt: skip
     for message, call in cases:
         with pytest.raises(ValueError, match=message):
