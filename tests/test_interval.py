@@ -173,6 +173,53 @@ def test_hessian_interval_contains_sampled_hessians(name):
     assert np.all(np.isfinite(np.asarray(enclosure.lo)))
 
 
+def _sampled_remainders(fn, center, shape, rng, count=20000):
+    """|fn(x) - fn(c) - J(c)(x - c)| at points of E(c, P), half of them on its boundary."""
+    n = center.shape[0]
+    u = rng.normal(size=(count, n))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    u[: count // 2] *= rng.uniform(size=(count // 2, 1)) ** (1 / n)
+    points = jnp.asarray(np.asarray(center) + u @ np.linalg.cholesky(np.asarray(shape)).T)
+    J = jax.jacfwd(fn)(center)
+    return np.abs(np.asarray(jax.vmap(lambda x: fn(x) - fn(center) - J @ (x - center))(points)))
+
+
+@pytest.mark.parametrize(
+    "name, fn, center",
+    [
+        ("min(x^2, 1)", lambda x: jnp.minimum(x**2, 1.0), [0.9, 0.0]),
+        ("clip", lambda x: jnp.clip(x, -0.2, 0.3), [0.1, 0.0]),
+        ("x |x|", lambda x: x * jnp.abs(x), [0.1, -0.2]),
+        ("max of two", lambda x: jnp.maximum(x[:1] ** 2, 2 * x[1:]), [0.5, 0.2]),
+        ("hypot", lambda x: jnp.hypot(x[:1], x[1:]), [1.0, 0.5]),
+        ("softplus", lambda x: jax.nn.softplus(3 * x), [0.0, 0.1]),
+    ],
+    ids=["min", "clip", "x_abs_x", "max", "hypot", "softplus"],
+)
+def test_remainder_bound_holds_across_a_kink(name, fn, center):
+    """A kink in the set (a jump of the first derivative: abs, max, min switching branch) has no
+    Hessian: the branches' Hessians bounded min(x^2, 1)'s remainder at c = 0.9, P = 0.25 by
+    0.25 where 0.71 is attained. The first-order mean-value bound holds; smooth functions
+    written with max and abs (hypot, softplus) keep a finite bound."""
+    center = jnp.asarray(center)
+    shape = 0.25 * jnp.eye(2)
+    alpha = np.asarray(jax.jit(lambda c, P: remainder_bound(fn, c, P))(center, shape))
+    sampled = _sampled_remainders(fn, center, shape, np.random.default_rng(3))
+    assert np.all(np.isfinite(alpha)) and np.all(sampled <= alpha)
+
+
+def test_remainder_bound_is_nan_where_the_value_may_jump():
+    """sign and a where whose condition changes over the set may jump: no bound holds (NaN,
+    which the set-membership filter flags); over a set where they do not switch, the bound is
+    the smooth one (zero for a constant branch)."""
+    step = lambda x: jnp.where(x > 0, 1.0, 0.0)
+    for fn in (jnp.sign, step):
+        across = remainder_bound(fn, jnp.zeros(1), 0.01 * jnp.eye(1))
+        assert np.all(np.isnan(np.asarray(across)))
+        away = remainder_bound(fn, jnp.ones(1), 0.01 * jnp.eye(1))
+        np.testing.assert_array_equal(away, [0.0])
+
+
 @pytest.mark.parametrize("name", ["trig", "exp_log", "atan", "dot_index"])
 def test_remainder_bound_contains_sampled_remainders(name):
     fn = _model_functions()[name]

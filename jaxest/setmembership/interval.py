@@ -296,6 +296,10 @@ def _midrad(x: Interval):
 
 
 def _compare(a, b, name) -> Interval:
+    if a is b and isinstance(a, Interval) and name in ("eq", "ne"):
+        # x == x for one variable (jnp.isnan's x != x): certain unless x may be NaN
+        nan = jnp.isnan(a.lo) | jnp.isnan(a.hi)
+        return Interval(~nan, ~nan) if name == "eq" else Interval(nan, nan)
     a, b = lift(a), lift(b)
     if name in ("lt", "le"):
         strict = name == "lt"
@@ -399,16 +403,43 @@ def _rule(name: str) -> Callable | None:
     return None
 
 
-def _apply(eqn, invals):
+def _kink(name: str, params, invals) -> tuple[str, Array] | None:
+    """For a non-smooth primitive, ``(kind, flag)``: ``flag`` whether it may switch branch inside
+    its arguments' intervals (a scalar boolean); ``kind`` "kink" where the value stays continuous
+    across the switch (abs, max, min, reduce_max, reduce_min: the first derivative jumps) and
+    "jump" where it need not (sign, a select on an interval condition). ``None`` otherwise."""
+    if name in ("abs", "sign") and isinstance(invals[0], Interval):
+        straddles = jnp.any((invals[0].lo < 0) & (invals[0].hi > 0))
+        return ("kink" if name == "abs" else "jump"), straddles
+    if name in ("max", "min"):
+        a, b = lift(invals[0]), lift(invals[1])
+        return "kink", jnp.any((a.lo < b.hi) & (b.lo < a.hi))
+    if name == "select_n" and isinstance(invals[0], Interval):
+        return "jump", jnp.any(invals[0].lo != invals[0].hi)
+    if name in ("reduce_max", "reduce_min") and isinstance(invals[0], Interval):
+        x, axes = invals[0], params["axes"]
+        if name == "reduce_min":
+            x = -x
+        # more than one entry can be the largest: the maximum switches between them
+        top = jnp.max(x.lo, axis=axes, keepdims=True)
+        return "kink", jnp.any(jnp.sum(x.hi >= top, axis=axes) > 1)
+    return None
+
+
+def _apply(eqn, invals, kinks=None):
     name = eqn.primitive.name
     params = dict(eqn.params)
     if not any(isinstance(v, Interval) for v in invals):
         return eqn.primitive.bind(*invals, **params)
+    if kinks is not None and (kink := _kink(name, params, invals)) is not None:
+        kinks.append(kink)
     inner = params.get("jaxpr", params.get("call_jaxpr"))
     if inner is not None and name in ("pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call", "remat", "checkpoint"):  # fmt: skip
         if isinstance(inner, jex.ClosedJaxpr):
-            return eval_jaxpr(inner.jaxpr, inner.consts, *invals[: len(inner.jaxpr.invars)])
-        return eval_jaxpr(inner, [], *invals[: len(inner.invars)])
+            return eval_jaxpr(
+                inner.jaxpr, inner.consts, *invals[: len(inner.jaxpr.invars)], kinks=kinks
+            )
+        return eval_jaxpr(inner, [], *invals[: len(inner.invars)], kinks=kinks)
     rule = _rule(name)
     if rule is not None:
         return rule(*invals)
@@ -459,9 +490,11 @@ def _apply(eqn, invals):
     raise NotImplementedError(f"interval evaluation: no rule for the primitive {name!r}")
 
 
-def eval_jaxpr(jaxpr, consts, *args) -> list:
+def eval_jaxpr(jaxpr, consts, *args, kinks: list | None = None) -> list:
     """Evaluate ``jaxpr`` with arguments that are arrays or :class:`Interval` s; every operation
-    touching an interval is replaced by its interval extension (outward rounded)."""
+    touching an interval is replaced by its interval extension (outward rounded). ``kinks``:
+    a list that collects, for each non-smooth operation, whether it may switch branch over its
+    arguments (:func:`_kink`)."""
     env = {}
 
     def read(v):
@@ -472,7 +505,7 @@ def eval_jaxpr(jaxpr, consts, *args) -> list:
     for var, val in zip(jaxpr.invars, args, strict=True):
         env[var] = val
     for eqn in jaxpr.eqns:
-        out = _apply(eqn, [read(v) for v in eqn.invars])
+        out = _apply(eqn, [read(v) for v in eqn.invars], kinks)
         outs = out if eqn.primitive.multiple_results else [out]
         for var, val in zip(eqn.outvars, outs, strict=True):
             if not isinstance(var, jex.DropVar):
@@ -480,17 +513,46 @@ def eval_jaxpr(jaxpr, consts, *args) -> list:
     return [read(v) for v in jaxpr.outvars]
 
 
+def _shapes(box: Interval, args):
+    example = jax.ShapeDtypeStruct(box.shape, box.dtype)
+    return example, [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
+
+
+def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None:
+    """``(kink, jump)``: whether ``fn(x, *args)`` may have, for x in ``box``, a point where its
+    first derivative jumps (a continuous non-smooth operation switching branch: abs, max, min)
+    or where its value may jump (sign, ``where`` on a condition that changes over the box);
+    ``None`` where ``fn`` has no non-smooth operation at all (:func:`_kink`)."""
+    example, arg_shapes = _shapes(box, args)
+    primal = jax.make_jaxpr(fn)(example, *arg_shapes)
+    found = []
+    eval_jaxpr(primal.jaxpr, primal.consts, box, *args, kinks=found)
+    if not found:
+        return None
+    of = lambda kind: jnp.any(
+        jnp.stack([f for k, f in found if k == kind] or [jnp.zeros((), bool)])
+    )
+    return of("kink"), of("jump")
+
+
+def _derivative_enclosure(derivative: Callable, fn: Callable, box: Interval, *args) -> Interval:
+    example, arg_shapes = _shapes(box, args)
+    closed = jax.make_jaxpr(derivative(fn))(example, *arg_shapes)
+    return lift(eval_jaxpr(closed.jaxpr, closed.consts, box, *args)[0])
+
+
 def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
-    """An enclosure of the Hessian d^2 fn / dx^2 (shape (m, n, n)) over every x in ``box``.
+    """An enclosure of the Hessian d^2 fn / dx^2 (shape (m, n, n)) over every x in ``box`` where
+    ``fn`` is twice differentiable.
 
     ``fn(x, *args)`` is any function written in ``jax.numpy``; ``args`` are held fixed (exact).
-    The Hessian's jaxpr is built for ``box``'s shape and evaluated over intervals.
+    The Hessian's jaxpr is built for ``box``'s shape and evaluated over intervals. JAX
+    differentiates a non-smooth operation (abs, max, ``where``) branch by branch, so where
+    ``fn`` has a kink in the box (:func:`kinks_over`) this encloses its branches' Hessians,
+    not the jump of the first derivative there (a Dirac term of the second): a Taylor bound
+    needs more (:func:`remainder_bound`).
     """
-    example = jax.ShapeDtypeStruct(box.shape, box.dtype)
-    arg_shapes = [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
-    closed = jax.make_jaxpr(jax.hessian(fn))(example, *arg_shapes)
-    (out,) = eval_jaxpr(closed.jaxpr, closed.consts, box, *args)
-    return lift(out)
+    return _derivative_enclosure(jax.hessian, fn, box, *args)
 
 
 def bounding_box(center: Float[Array, " n"], shape: Float[Array, "n n"]) -> Interval:
@@ -509,13 +571,30 @@ def remainder_bound(
 
     bounded in interval arithmetic with dx_j dx_l in [-r_j r_l, r_j r_l] off the diagonal and
     dx_j^2 in [0, r_j^2] on it; alpha_i is the magnitude of the resulting interval.
+
+    Where ``fn`` may have a kink in the box (:func:`kinks_over`: abs, max, min switching branch)
+    it has no Hessian there, and the mean-value form for a Lipschitz function is used instead:
+    fn(x) - fn(c) - J(c)(x - c) = (J(xi) - J(c))(x - c), J(xi) in the hull of the branches'
+    Jacobians over the box, so alpha_i = sum_j |J_ij(box) - J_ij(c)| r_j (first order in r).
+    Where its value may jump (sign, ``where`` on a condition that changes over the box) no
+    bound holds: NaN, which the set-membership filter flags.
     """
     box = bounding_box(center, shape)
-    hess = hessian_interval(fn, box, *args)  # (m, n, n)
     r = _up(jnp.sqrt(jnp.diagonal(shape)))
+    hess = hessian_interval(fn, box, *args)  # (m, n, n)
     rr = _up(r[:, None] * r[None, :])
     diagonal = jnp.eye(r.shape[0], dtype=bool)
     products = Interval(jnp.where(diagonal, 0.0, -rr), rr)
     quadratic = reduce_sum(mul(hess, Interval(products.lo[None], products.hi[None])), (1, 2))
     half = 0.5 * quadratic.mag()  # exact but for subnormals, which _up covers
-    return jnp.where(half == 0, 0.0, _up(half))  # NaN (a failed enclosure) stays NaN
+    bound = jnp.where(half == 0, 0.0, _up(half))  # NaN (a failed enclosure) stays NaN
+    found = kinks_over(fn, box, *args)
+    if found is None:
+        return bound
+    kink, jump = found
+    spread = sub(
+        _derivative_enclosure(jax.jacfwd, fn, box, *args),
+        _derivative_enclosure(jax.jacfwd, fn, point(center), *args),
+    )  # (m, n)
+    first_order = reduce_sum(mul(spread, Interval(-r[None], r[None])), (1,)).mag()
+    return jnp.where(jump, jnp.nan, jnp.where(kink, _up(first_order), bound))
