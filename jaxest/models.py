@@ -27,10 +27,11 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from jaxest._priors import Gaussian
-from jaxest.linalg import mv, working_precision_by_default
+from jaxest.linalg import after, factor_psd_or_nan, mv, working_precision_by_default
 
 
 def at_time(matrix: Array, k, ndim: int = 2) -> Array:
@@ -235,9 +236,21 @@ class Simulation(eqx.Module):
 
 
 def gaussian_noise(key, cov):
-    """Default noise sampler: one draw of N(0, cov)."""
+    """Default noise sampler: one draw of N(0, cov) for a positive semidefinite cov: chol(cov) z,
+    or, where cov is singular and has no Cholesky factor (a noise that drives some states
+    only, Q = 0), U diag(D) z from its symmetric eigendecomposition, which used to give NaN.
+    The draws of a positive definite cov are unchanged; an indefinite one gives NaN
+    (:func:`~jaxest.linalg.factor_psd_or_nan`)."""
+    z = jax.random.normal(key, cov.shape[:1], dtype=cov.dtype)
     chol = jnp.linalg.cholesky(cov)
-    return chol @ jax.random.normal(key, cov.shape[:1], dtype=cov.dtype)
+
+    def semidefinite_root():
+        # after the Cholesky factor: two batched LAPACK calls at once can deadlock jaxlib 0.10
+        U, D = factor_psd_or_nan(after(cov, chol))
+        return U * D
+
+    root = jax.lax.cond(jnp.all(jnp.isfinite(chol)), lambda: chol, semidefinite_root)
+    return root @ z
 
 
 def check_inputs_used(model, inputs):
@@ -324,11 +337,26 @@ def simulate(
     check_time_axes(model, 0, steps)
     if inputs is not None and any(jnp.shape(a)[:1] != (steps,) for a in jax.tree.leaves(inputs)):
         raise ValueError(f"inputs: expected a leading time axis of num_steps = {steps}")
+    from jaxest._checks import check_matrix, is_concrete  # _checks imports this module
+
     if isinstance(model, LinearGaussian):
         n = model.F.shape[-1]
         x0_shape = (x0.mean if isinstance(x0, Gaussian) else jnp.asarray(x0)).shape
         if x0_shape != (n,):
             raise ValueError(f"x0: expected shape ({n},) for the model's state, got {x0_shape}")
+        m, q = model.H.shape[-2], n if model.G is None else model.G.shape[-1]
+        check_matrix("model.H", model.H, (m, n))
+        check_matrix("model.Q", model.Q, (q, q), psd=True)
+        check_matrix("model.R", model.R, (m, m), psd=True)
+    elif isinstance(model, NonlinearGaussian):
+        check_matrix("model.Q", model.Q, psd=True)
+        check_matrix("model.R", model.R, psd=True)
+    if isinstance(x0, Gaussian):
+        check_matrix("x0.cov", x0.cov, psd=True)
+    if is_concrete(x0_mean := x0.mean if isinstance(x0, Gaussian) else x0) and not np.all(
+        np.isfinite(np.asarray(x0_mean, dtype=float))
+    ):
+        raise ValueError("x0: contains NaN or infinite entries")
     return _simulate(model, x0, steps, key, inputs, process_noise, measurement_noise)
 
 

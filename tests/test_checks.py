@@ -134,6 +134,39 @@ def test_dtypes_that_do_not_fit_are_named():
     assert bool(je.run(KalmanFilter(), single[0], single[1], prior=single[2]).ok)
 
 
+def test_simulate_draws_a_singular_noise_and_names_bad_covariances():
+    """A noise that drives some states only (Q of rank one, or zero) has no Cholesky factor:
+    the simulation was all NaN. It now draws from the eigendecomposition, on the line Q spans
+    with its variance; a positive definite Q draws as before; an indefinite or misshapen Q, R
+    or x0 is named (they gave NaN or a TypeError from the trace)."""
+    from jaxest.models import gaussian_noise
+
+    v = jnp.asarray([0.6, -0.8])
+    line = je.LinearGaussian(jnp.zeros((2, 2)), jnp.ones((1, 2)), jnp.outer(v, v), jnp.eye(1))
+    states = np.asarray(je.simulate(line, jnp.zeros(2), 4000, jax.random.key(0)).states[1:])
+    # on the line: off it by the rounding of v v^T (an eigenvalue of 5.6e-17, a std of 7e-9)
+    np.testing.assert_allclose(states @ np.asarray([0.8, 0.6]), 0.0, atol=1e-7)
+    assert abs(np.var(states @ np.asarray(v)) - 1.0) < 0.1  # 4000 draws: s.e. of 0.022
+    still = je.LinearGaussian(jnp.eye(2), jnp.ones((1, 2)), jnp.zeros((2, 2)), jnp.eye(1))
+    np.testing.assert_array_equal(je.simulate(still, jnp.ones(2), 5, jax.random.key(1)).states, 1.0)
+    cov, key = jnp.asarray([[2.0, 0.3], [0.3, 1.0]]), jax.random.key(2)
+    np.testing.assert_array_equal(
+        gaussian_noise(key, cov), jnp.linalg.cholesky(cov) @ jax.random.normal(key, (2,))
+    )
+    model, _, prior = good()
+    flip = jnp.diag(jnp.asarray([1.0, -1.0]))
+    cases = [
+        (je.LinearGaussian(model.F, model.H, flip * model.Q, model.R), prior, "^model.Q: must be"),
+        (je.LinearGaussian(model.F, model.H, model.Q, -model.R), prior, "^model.R: must be"),
+        (je.LinearGaussian(model.F, jnp.ones((1, 3)), model.Q, model.R), prior, "^model.H: expected"),
+        (model, je.Gaussian(prior.mean, flip), "^x0.cov: must be"),
+        (model, prior.mean.at[0].set(jnp.nan), "^x0: contains NaN"),
+    ]  # fmt: skip
+    for bad, start, message in cases:
+        with pytest.raises(ValueError, match=message):
+            je.simulate(bad, start, 5, jax.random.key(0))
+
+
 def test_simulate_names_an_initial_state_of_the_wrong_size():
     model, _, _ = good()  # it raised a TypeError from inside the traced scan
     with pytest.raises(ValueError, match=r"^x0: expected shape \(2,\)"):
