@@ -324,6 +324,8 @@ def simulate(
     Compiled as one program (``equinox.filter_jit``; ``num_steps``, the samplers and the model's
     functions are static), so a second call with arrays of the same shapes does not compile.
     """
+    from jaxest._checks import check_matrix, is_concrete  # _checks imports this module
+
     try:
         steps = operator.index(num_steps)  # a Python, NumPy or concrete JAX integer
     except TypeError:
@@ -337,8 +339,6 @@ def simulate(
     check_time_axes(model, 0, steps)
     if inputs is not None and any(jnp.shape(a)[:1] != (steps,) for a in jax.tree.leaves(inputs)):
         raise ValueError(f"inputs: expected a leading time axis of num_steps = {steps}")
-    from jaxest._checks import check_matrix, is_concrete  # _checks imports this module
-
     if isinstance(model, LinearGaussian):
         n = model.F.shape[-1]
         x0_shape = (x0.mean if isinstance(x0, Gaussian) else jnp.asarray(x0)).shape

@@ -41,8 +41,9 @@ linear-Gaussian model, and (3) needs P0, Q_k and R_k to have densities. Models w
 G are left to autodiff (G Q G^T may be singular), and so are runs whose P0 or Q is singular or
 nearly so (:func:`has_density`) where :func:`jaxest.run` sees their values
 (``KalmanFilter.for_arguments``); where it sees only tracers (under ``jit``), the rule's
-tangent is NaN at such a covariance rather than a wrong number. Cost: one RTS smoother and a batched (not sequential) evaluation of
-(3) over the steps, against autodiff's reverse sweep through every step of the filter.
+tangent is NaN at such a covariance rather than a wrong number. Cost: one RTS smoother and a
+batched (not sequential) evaluation of (3) over the steps, against autodiff's reverse sweep
+through every step of the filter.
 Covariance gradients are symmetric: they are the derivatives along symmetric perturbations (the
 filter uses P0 unsymmetrised, so autodiff's gradient for it need not be symmetric; the symmetric
 parts agree).

@@ -108,15 +108,14 @@ def add_box_of_segments(shape, segments, shape_error=None):
         flat = finite & jnp.any(direction != 0) & ~usable
         nonzero = usable | flat
         outer = jnp.outer(direction, direction)
+        a_ = _safe(usable, a)
         if n == 1:
-            a_ = _safe(usable, a)
             p = jnp.sqrt(a_)
             extent = jnp.maximum(shape + error, 0)
             positive = extent > 0  # sqrt' is infinite at 0: the derivative of |F| there is 0
             root = jnp.where(positive, jnp.sqrt(_safe(positive, extent)), 0.0)
             exact = (root + jnp.abs(direction)) ** 2
         else:
-            a_ = _safe(usable, a)
             p = jnp.where(
                 flat,
                 jnp.asarray(1 / (n - 1), dtype),

@@ -103,8 +103,8 @@ def rts_smooth(
     if parallel:
         from jaxest.smoothers.parallel import parallel_rts_smooth
 
-        return parallel_rts_smooth(model, result, inputs, k0)
-    return _rts_smooth(model, result, inputs, k0)
+        return parallel_rts_smooth(model, result, inputs, jnp.asarray(k0))
+    return _rts_smooth(model, result, inputs, jnp.asarray(k0))  # traced: one program for any k0
 
 
 @eqx.filter_jit

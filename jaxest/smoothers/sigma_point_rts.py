@@ -41,7 +41,7 @@ def sigma_point_rts_smooth(
             f"got {type(filter).__name__}; use jaxest.rts_smooth for the others"
         )
     check_smoother_arguments("sigma_point_rts_smooth", model, result, inputs, k0)
-    return _smooth(model, result, filter, inputs, k0)
+    return _smooth(model, result, filter, inputs, jnp.asarray(k0))  # one program for any k0
 
 
 @eqx.filter_jit
