@@ -264,6 +264,11 @@ def check_inputs_used(model, inputs):
             "inputs: the model has no input matrices (model.B and model.D are None), so the "
             "inputs would be ignored; give LinearGaussian(..., B=...) or drop inputs"
         )
+    if inputs is None and linear and (model.B is not None or model.D is not None):
+        raise ValueError(
+            "inputs: the model has input matrices (model.B or model.D) but no inputs were given, "
+            "so they would be ignored; pass inputs (zeros for none) or build the model without them"
+        )
     if not linear or len(getattr(inputs, "shape", ())) != 2:  # (T, p); others: check_sequence
         return
     for name, matrix, rows in (("B", model.B, model.F), ("D", model.D, model.H)):

@@ -89,6 +89,12 @@ def test_inputs_to_a_linear_model_without_input_matrices_are_rejected():
         je.run(KalmanFilter(), model, ys, inputs=jnp.ones((10, 1)), prior=prior)
     with pytest.raises(ValueError, match=r"^inputs: the model has no input matrices"):
         je.simulate(model, prior, 10, jax.random.key(0), inputs=jnp.ones((10, 1)))
+    # and the other way round: B without inputs was ignored as silently
+    driven = je.LinearGaussian(model.F, model.H, model.Q, model.R, B=jnp.ones((2, 1)))
+    with pytest.raises(ValueError, match=r"^inputs: the model has input matrices"):
+        je.run(KalmanFilter(), driven, ys, prior=prior)
+    with pytest.raises(ValueError, match=r"^inputs: the model has input matrices"):
+        je.simulate(driven, prior, 10, jax.random.key(0))
 
 
 def test_input_matrices_must_fit_the_inputs_width_and_the_state():
