@@ -218,6 +218,12 @@ def test_remainder_bound_is_nan_where_the_value_may_jump():
         assert np.all(np.isnan(np.asarray(across)))
         away = remainder_bound(fn, jnp.ones(1), 0.01 * jnp.eye(1))
         np.testing.assert_array_equal(away, [0.0])
+    # without non-smooth operations the primal is not evaluated over intervals: jnp.prod's
+    # reduce_prod has no interval rule, but its Hessian is products, and the bound stays
+    product = remainder_bound(
+        lambda x: jnp.prod(x)[None], jnp.asarray([2.0, 1.0]), 0.5 * jnp.eye(2)
+    )
+    assert np.all(np.isfinite(np.asarray(product)))
 
 
 @pytest.mark.parametrize("name", ["trig", "exp_log", "atan", "dot_index"])

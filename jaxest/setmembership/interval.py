@@ -518,6 +518,22 @@ def _shapes(box: Interval, args):
     return example, [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
 
 
+_NON_SMOOTH = {"abs", "sign", "max", "min", "select_n", "reduce_max", "reduce_min"}
+
+
+def _has_non_smooth(jaxpr) -> bool:
+    """Whether ``jaxpr`` or a jaxpr inside it applies a primitive :func:`_kink` knows."""
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name in _NON_SMOOTH:
+            return True
+        for value in eqn.params.values():
+            for inner in value if isinstance(value, tuple | list) else (value,):
+                inner = getattr(inner, "jaxpr", inner)  # a ClosedJaxpr's own
+                if isinstance(inner, jex.Jaxpr) and _has_non_smooth(inner):
+                    return True
+    return False
+
+
 def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None:
     """``(kink, jump)``: whether ``fn(x, *args)`` may have, for x in ``box``, a point where its
     first derivative jumps (a continuous non-smooth operation switching branch: abs, max, min)
@@ -525,6 +541,8 @@ def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None
     ``None`` where ``fn`` has no non-smooth operation at all (:func:`_kink`)."""
     example, arg_shapes = _shapes(box, args)
     primal = jax.make_jaxpr(fn)(example, *arg_shapes)
+    if not _has_non_smooth(primal.jaxpr):
+        return None  # nothing to evaluate (nor a rule to need for the primal's other primitives)
     found = []
     eval_jaxpr(primal.jaxpr, primal.consts, box, *args, kinks=found)
     if not found:
