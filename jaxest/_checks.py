@@ -203,12 +203,12 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
 
 
 def check_precision(model, ys, prior) -> None:
-    """The prior in the widest precision of the model's arrays, the measurements and itself:
-    a narrower one (a float32 prior with a float64 model) made the filters' state change dtype
-    after one step, a TypeError from inside the scan."""
-    arrays = [a for a in jax.tree.leaves(model) if eqx.is_inexact_array(a)]
-    widest = jnp.result_type(prior.mean, prior.cov, ys, *arrays)
-    own = jnp.result_type(prior.mean, prior.cov)
+    """The prior (a Gaussian, an ellipsoid) in the widest precision of the model's arrays, the
+    measurements and itself: a narrower one (a float32 prior with a float64 model) made the
+    filters' state change dtype after one step, a TypeError from inside the scan."""
+    inexact = lambda tree: [a for a in jax.tree.leaves(tree) if eqx.is_inexact_array(a)]
+    own = jnp.result_type(*inexact(prior))
+    widest = jnp.result_type(own, ys, *inexact(model))
     if own != widest:
         raise ValueError(
             f"prior: is {own}, narrower than the model's arrays or the measurements ({widest}); "

@@ -27,7 +27,6 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float
 
 from jaxest._priors import Gaussian
@@ -271,14 +270,13 @@ def check_inputs_used(model, inputs):
         )
     if not linear or len(getattr(inputs, "shape", ())) != 2:  # (T, p); others: check_sequence
         return
-    for name, matrix, rows in (("B", model.B, model.F), ("D", model.D, model.H)):
-        if matrix is None:
-            continue
-        expected = (jnp.shape(rows)[-2], jnp.shape(inputs)[-1])
-        if jnp.shape(matrix)[-2:] != expected:
+    for name, rows in (("B", "F"), ("D", "H")):
+        matrix = getattr(model, name)
+        expected = (jnp.shape(getattr(model, rows))[-2], jnp.shape(inputs)[-1])
+        if matrix is not None and jnp.shape(matrix)[-2:] != expected:
             raise ValueError(
-                f"model.{name}: expected trailing shape {expected} (rows of model."
-                f"{'F' if name == 'B' else 'H'}, the inputs' width), got {jnp.shape(matrix)}"
+                f"model.{name}: expected trailing shape {expected} (rows of model.{rows}, the "
+                f"inputs' width), got {jnp.shape(matrix)}"
             )
 
 
@@ -329,7 +327,7 @@ def simulate(
     Compiled as one program (``equinox.filter_jit``; ``num_steps``, the samplers and the model's
     functions are static), so a second call with arrays of the same shapes does not compile.
     """
-    from jaxest._checks import check_matrix, is_concrete  # _checks imports this module
+    from jaxest._checks import check_matrix  # _checks imports this module
 
     try:
         steps = operator.index(num_steps)  # a Python, NumPy or concrete JAX integer
@@ -358,10 +356,7 @@ def simulate(
         check_matrix("model.R", model.R, psd=True)
     if isinstance(x0, Gaussian):
         check_matrix("x0.cov", x0.cov, psd=True)
-    if is_concrete(x0_mean := x0.mean if isinstance(x0, Gaussian) else x0) and not np.all(
-        np.isfinite(np.asarray(x0_mean, dtype=float))
-    ):
-        raise ValueError("x0: contains NaN or infinite entries")
+    check_matrix("x0", x0.mean if isinstance(x0, Gaussian) else x0, ndim=1)  # finite
     return _simulate(model, x0, steps, key, inputs, process_noise, measurement_noise)
 
 

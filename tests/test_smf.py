@@ -122,16 +122,22 @@ def test_a_pole_inside_the_set_makes_it_unbounded_not_wrong():
     assert np.all(np.asarray(result.contains(states)))
 
 
+def _decay():
+    """x_{k+1} = 0.9 x_k, both states measured with an error of 0.005 inside the bound 0.01:
+    ``(f, states, ys, bounds, prior)``."""
+    f = lambda x: 0.9 * x
+    states = jnp.stack([0.9**k * jnp.asarray([0.3, -0.2]) for k in range(8)])
+    ys = states + 0.5e-2 * jnp.asarray([1.0, -1.0])
+    bounds = (jnp.full(2, 1e-3), jnp.full(2, 1e-2))
+    return f, states, ys, bounds, Ellipsoid(jnp.zeros(2), 0.25 * jnp.eye(2))
+
+
 def test_a_nan_remainder_bound_skips_its_row_and_is_flagged():
     """A remainder bound that is NaN bounds nothing. h's: its row is skipped (the sets still hold
     the state) and the step is flagged NONFINITE, where the strip used to be skipped silently;
     f's: the predicted set is unbounded, flagged NONFINITE at the step that computed it."""
-    f = lambda x: 0.9 * x
-    states = jnp.stack([0.9**k * jnp.asarray([0.3, -0.2]) for k in range(8)])
-    ys = states + 0.5e-2 * jnp.asarray([1.0, -1.0])
+    f, states, ys, bounds, prior = _decay()
     ys = ys.at[5, 1].set(jnp.nan)  # missing: its NaN bound plays no part
-    prior = Ellipsoid(jnp.zeros(2), 0.25 * jnp.eye(2))
-    bounds = (jnp.full(2, 1e-3), jnp.full(2, 1e-2))
     nan_row = lambda c, P, u: jnp.asarray([0.0, jnp.nan])
     skipped = BoundedNoiseModel(f, lambda x: x, *bounds, h_remainder=nan_row)
     result = run(SetMembershipFilter(), skipped, ys, prior=prior)
@@ -153,11 +159,8 @@ def test_an_infinite_reading_is_an_alarm_not_a_missing_measurement(reading):
     """An infinite y lies in no strip around a finite h(x): EMPTY_SET at its step, where it used
     to be skipped with status OK as a NaN (missing) one is, so a sensor stuck at inf went
     unnoticed. The step's readings are discarded, as for any alarm."""
-    f = lambda x: 0.9 * x
-    states = jnp.stack([0.9**k * jnp.asarray([0.3, -0.2]) for k in range(8)])
-    ys = states + 0.5e-2 * jnp.asarray([1.0, -1.0])
-    model = BoundedNoiseModel(f, lambda x: x, jnp.full(2, 1e-3), jnp.full(2, 1e-2))
-    prior = Ellipsoid(jnp.zeros(2), 0.25 * jnp.eye(2))
+    f, states, ys, bounds, prior = _decay()
+    model = BoundedNoiseModel(f, lambda x: x, *bounds)
     result = jax.jit(lambda ys: run(SetMembershipFilter(), model, ys, prior=prior))(
         ys.at[3, 0].set(reading)
     )

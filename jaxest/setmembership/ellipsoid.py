@@ -109,23 +109,18 @@ def add_box_of_segments(shape, segments, shape_error=None):
         nonzero = usable | flat
         outer = jnp.outer(direction, direction)
         a_ = _safe(usable, a)
-        if n == 1:
-            p = jnp.sqrt(a_)
-            extent = jnp.maximum(shape + error, 0)
-            positive = extent > 0  # sqrt' is infinite at 0: the derivative of |F| there is 0
-            root = jnp.where(positive, jnp.sqrt(_safe(positive, extent)), 0.0)
-            exact = (root + jnp.abs(direction)) ** 2
-        else:
-            p = jnp.where(
-                flat,
-                jnp.asarray(1 / (n - 1), dtype),
-                2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_)),
-            )
+        p = 2 * a_ / ((n - 1) * a_ + jnp.sqrt((n - 1) ** 2 * a_**2 + 4 * n * a_))
+        if n > 1:
+            p = jnp.where(flat, jnp.asarray(1 / (n - 1), dtype), p)
         grown = symmetrize((1 + p) * shape + (1 + 1 / p) * outer)
         grown_error = (1 + p) * error + gamma(6, dtype) * (
             (1 + p) * jnp.abs(shape) + (1 + 1 / p) * jnp.abs(outer)
         )
-        if n == 1:  # E_P is inside the exact sum already
+        if n == 1:  # flat: the exact interval sum, E_P inside it
+            extent = jnp.maximum(shape + error, 0)
+            positive = extent > 0  # sqrt' is infinite at 0: the derivative of |F| there is 0
+            root = jnp.where(positive, jnp.sqrt(_safe(positive, extent)), 0.0)
+            exact = (root + jnp.abs(direction)) ** 2
             grown = jnp.where(flat, exact, grown)
             grown_error = jnp.where(flat, gamma(6, dtype) * exact, grown_error)
         shape = jnp.where(nonzero, grown, shape)

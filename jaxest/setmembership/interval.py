@@ -403,27 +403,34 @@ def _rule(name: str) -> Callable | None:
     return None
 
 
+#: the non-smooth primitives :func:`_kink` knows, and what switching branch does: "kink" where
+#: the value stays continuous (the first derivative jumps), "jump" where it need not
+_NON_SMOOTH = {
+    "abs": "kink", "max": "kink", "min": "kink", "reduce_max": "kink", "reduce_min": "kink",
+    "sign": "jump", "select_n": "jump",
+}  # fmt: skip
+
+
 def _kink(name: str, params, invals) -> tuple[str, Array] | None:
-    """For a non-smooth primitive, ``(kind, flag)``: ``flag`` whether it may switch branch inside
-    its arguments' intervals (a scalar boolean); ``kind`` "kink" where the value stays continuous
-    across the switch (abs, max, min, reduce_max, reduce_min: the first derivative jumps) and
-    "jump" where it need not (sign, a select on an interval condition). ``None`` otherwise."""
-    if name in ("abs", "sign") and isinstance(invals[0], Interval):
-        straddles = jnp.any((invals[0].lo < 0) & (invals[0].hi > 0))
-        return ("kink" if name == "abs" else "jump"), straddles
+    """For a primitive of :data:`_NON_SMOOTH`, ``(kind, flag)``: ``flag`` whether it may switch
+    branch inside its arguments' intervals (a scalar boolean); ``None`` otherwise (or where the
+    argument that decides the branch is exact)."""
+    if name not in _NON_SMOOTH:
+        return None
     if name in ("max", "min"):
         a, b = lift(invals[0]), lift(invals[1])
-        return "kink", jnp.any((a.lo < b.hi) & (b.lo < a.hi))
-    if name == "select_n" and isinstance(invals[0], Interval):
-        return "jump", jnp.any(invals[0].lo != invals[0].hi)
-    if name in ("reduce_max", "reduce_min") and isinstance(invals[0], Interval):
-        x, axes = invals[0], params["axes"]
-        if name == "reduce_min":
-            x = -x
+        return _NON_SMOOTH[name], jnp.any((a.lo < b.hi) & (b.lo < a.hi))
+    x = invals[0]
+    if not isinstance(x, Interval):
+        return None
+    if name == "select_n":
+        return _NON_SMOOTH[name], jnp.any(x.lo != x.hi)
+    if name in ("reduce_max", "reduce_min"):
+        x, axes = (x if name == "reduce_max" else -x), params["axes"]
         # more than one entry can be the largest: the maximum switches between them
         top = jnp.max(x.lo, axis=axes, keepdims=True)
-        return "kink", jnp.any(jnp.sum(x.hi >= top, axis=axes) > 1)
-    return None
+        return _NON_SMOOTH[name], jnp.any(jnp.sum(x.hi >= top, axis=axes) > 1)
+    return _NON_SMOOTH[name], jnp.any((x.lo < 0) & (x.hi > 0))  # abs, sign
 
 
 def _apply(eqn, invals, kinks=None):
@@ -518,9 +525,6 @@ def _shapes(box: Interval, args):
     return example, [jax.ShapeDtypeStruct(jnp.shape(a), jnp.result_type(a)) for a in args]
 
 
-_NON_SMOOTH = {"abs", "sign", "max", "min", "select_n", "reduce_max", "reduce_min"}
-
-
 def _has_non_smooth(jaxpr) -> bool:
     """Whether ``jaxpr`` or a jaxpr inside it applies a primitive :func:`_kink` knows."""
     for eqn in jaxpr.eqns:
@@ -545,18 +549,15 @@ def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None
         return None  # nothing to evaluate (nor a rule to need for the primal's other primitives)
     found = []
     eval_jaxpr(primal.jaxpr, primal.consts, box, *args, kinks=found)
-    if not found:
-        return None
-    of = lambda kind: jnp.any(
-        jnp.stack([f for k, f in found if k == kind] or [jnp.zeros((), bool)])
-    )
-    return of("kink"), of("jump")
+    of = lambda kind: jnp.any(jnp.asarray([False] + [f for k, f in found if k == kind]))
+    return (of("kink"), of("jump")) if found else None
 
 
-def _derivative_enclosure(derivative: Callable, fn: Callable, box: Interval, *args) -> Interval:
-    example, arg_shapes = _shapes(box, args)
+def _derivative_enclosures(derivative: Callable, fn: Callable, boxes, *args) -> list[Interval]:
+    """Enclosures of ``derivative(fn)`` over each of ``boxes`` (one shape), traced once."""
+    example, arg_shapes = _shapes(boxes[0], args)
     closed = jax.make_jaxpr(derivative(fn))(example, *arg_shapes)
-    return lift(eval_jaxpr(closed.jaxpr, closed.consts, box, *args)[0])
+    return [lift(eval_jaxpr(closed.jaxpr, closed.consts, box, *args)[0]) for box in boxes]
 
 
 def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
@@ -570,7 +571,7 @@ def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
     not the jump of the first derivative there (a Dirac term of the second): a Taylor bound
     needs more (:func:`remainder_bound`).
     """
-    return _derivative_enclosure(jax.hessian, fn, box, *args)
+    return _derivative_enclosures(jax.hessian, fn, [box], *args)[0]
 
 
 def bounding_box(center: Float[Array, " n"], shape: Float[Array, "n n"]) -> Interval:
@@ -610,9 +611,6 @@ def remainder_bound(
     if found is None:
         return bound
     kink, jump = found
-    spread = sub(
-        _derivative_enclosure(jax.jacfwd, fn, box, *args),
-        _derivative_enclosure(jax.jacfwd, fn, point(center), *args),
-    )  # (m, n)
+    spread = sub(*_derivative_enclosures(jax.jacfwd, fn, [box, point(center)], *args))  # (m, n)
     first_order = reduce_sum(mul(spread, Interval(-r[None], r[None])), (1,)).mag()
     return jnp.where(jump, jnp.nan, jnp.where(kink, _up(first_order), bound))

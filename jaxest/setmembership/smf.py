@@ -53,7 +53,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxest._checks import check_matrix, check_sequence, is_concrete
+from jaxest._checks import check_matrix, check_precision, check_sequence, is_concrete
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._run import run
 from jaxest._status import finite_status as check_finite_status
@@ -411,16 +411,9 @@ def check_smf_arguments(model, ys, prior, inputs):
         check_sequence("inputs", inputs, length=np.shape(ys)[0])
     if np.shape(prior.center) != (n,):
         raise ValueError(f"prior.center: expected shape ({n},), got {np.shape(prior.center)}")
-    if is_concrete(prior.center) and not np.all(np.isfinite(np.asarray(prior.center, float))):
-        raise ValueError("prior.center: contains NaN or infinite entries")
+    check_matrix("prior.center", prior.center, (n,), ndim=1)  # finite
     check_matrix("prior.shape", prior.shape, (n, n), spd=True)
-    own = jnp.result_type(prior.center, prior.shape)
-    widest = jnp.result_type(own, ys, model.process_bound, model.measurement_bound)
-    if own != widest:
-        raise ValueError(
-            f"prior: is {own}, narrower than the model's bounds or the measurements ({widest});"
-            f" give all of them one precision"
-        )
+    check_precision(model, ys, prior)
     u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
     for name, fn, size in (("model.f", model.f, n), ("model.h", model.h, m)):
         try:
