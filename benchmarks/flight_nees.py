@@ -25,8 +25,8 @@ the EKF against the iterated extended smoother, whose linearisation follows its 
 estimate. The smoother comes within the issue's ±10 % of the state dimension; pinning alone or
 iterating alone does not.
 ``initial_velocity_uncertainty``: the EKF on own-model flights (all 23 states) whose initial
-velocity error and prior std are the study's 1 m/s scaled by 1, 0.3 and 0.1; the excess goes with
-the velocity error (0.1 m/s: within 1 % of 23 at both rates).
+velocity error and prior std are the air-data start's 1 m/s scaled by 1, 0.3 and 0.1; the excess
+goes with the velocity error (0.1 m/s: within 1 % of 23 at both rates).
 The reference trajectory enters through the inputs (each step's input is [u, x_ref(k)]), so one
 model serves every run of the ``vmap``.
 """
@@ -242,16 +242,16 @@ def pinned_iterated(maneuver, rate, runs, num_iters, pinned=("lam_beta",), seed=
 
 def initial_uncertainty(maneuver, rate, runs, scales=(1.0, 0.3, 0.1), seed=0) -> dict:
     """The paper's EKF on flights simulated from its own model (all 23 states, nothing pinned),
-    with the initial velocity error and its prior std both ``scale`` times the study's
-    (``KINEMATIC_STD``, 1 m/s for u, v, w): time-averaged NEES per group after the settle window,
-    for each scale. The same flights and draws serve every scale (only the error's size
+    with the initial velocity error and its prior std both ``scale`` times the air-data start's
+    (``AIR_DATA_KINEMATIC_STD``, 1 m/s for u, v, w): time-averaged NEES per group after the settle
+    window, for each scale. The same flights and draws serve every scale (only the error's size
     changes)."""
     truth = sim.true_flight(maneuver, rate)
     key = flight_key(maneuver, rate, seed)
     model = svd_ekf.model_for(rate, jnp.float64)
     settle, out = int(svd_ekf.SETTLE_S * rate), {}
     for scale in scales:
-        velocity_std = scale * svd_ekf.KINEMATIC_STD[0]
+        velocity_std = scale * svd_ekf.AIR_DATA_KINEMATIC_STD[0]
         kinematic_std = svd_ekf.kinematic_std_with_velocity(velocity_std)
         batch = svd_ekf.simulated_batch(truth, runs, key, jnp.float64,
                                         kinematic_std=kinematic_std)  # fmt: skip

@@ -30,8 +30,9 @@ def test_quick_study_writes_the_summary(tmp_path):
             assert F["rmse"]["theta"] < 0.5  # deg: the filters track the attitude
     own = summary["own_model_simulation"]["elevator_10hz_float64"]["ekf"]
     assert own["runs"] == 3 and own["rmse"]["theta"] < 0.5 and own["all"]["expected"] == 23
-    informed = summary["informed_initial_velocity"]["elevator_10hz_float64"]["ekf"]
-    assert informed["runs"] == 3 and informed["all"]["expected"] == 23
+    air_data = summary["air_data_start"]["elevator_10hz_float64"]["ekf"]
+    assert air_data["runs"] == 3 and air_data["all"]["expected"] == 23
+    assert summary["settings"]["kinematic_std"] == pytest.approx(svd_ekf.INS_KINEMATIC_STD)
     assert (out / "fig_nees_elevator.png").stat().st_size > 0
     if data is None:
         assert "real_data" not in summary and "flt_data.zip" in summary["real_data_note"]
@@ -48,24 +49,24 @@ def test_quick_study_writes_the_summary(tmp_path):
     assert (out / "tables.md").exists()
 
 
-def test_informed_initial_guesses_differ_from_the_study_s_only_in_the_velocity_error():
-    """The informed-velocity block flies the condition's own flights: the same draws, with the
-    initial u, v, w error scaled by INFORMED_VELOCITY_STD / 1 m/s and nothing else changed."""
+def test_ins_start_differs_from_the_air_data_start_only_in_the_kinematic_error():
+    """The conditions' INS start and the air-data block fly the same flights: the same draws, the
+    initial kinematic error and prior std scaled by a tenth and nothing else changed."""
     truth = sim.true_flight("elevator", 10, 2.0)
     key = jax.random.key(5)
-    study = svd_ekf.simulated_batch(truth, 4, key, jnp.float64)
-    std = svd_ekf.kinematic_std_with_velocity(svd_ekf.INFORMED_VELOCITY_STD)
-    informed = svd_ekf.simulated_batch(truth, 4, key, jnp.float64, kinematic_std=std)
+    air_data = svd_ekf.simulated_batch(truth, 4, key, jnp.float64)
+    std = svd_ekf.INS_KINEMATIC_STD
+    ins = svd_ekf.simulated_batch(truth, 4, key, jnp.float64, kinematic_std=std)
     for i in (0, 1, 3):  # measurements, inputs, true states
-        np.testing.assert_array_equal(study[i], informed[i])
+        np.testing.assert_array_equal(air_data[i], ins[i])
     error = lambda batch: np.asarray(batch[2] - batch[3][:, 0])  # initial guess - truth
-    scale = std / svd_ekf.KINEMATIC_STD
-    np.testing.assert_allclose(error(informed)[:, :N_KIN], error(study)[:, :N_KIN] * scale,
+    np.testing.assert_allclose(error(ins)[:, :N_KIN], 0.1 * error(air_data)[:, :N_KIN],
                                rtol=1e-12, atol=1e-12)  # fmt: skip
-    np.testing.assert_array_equal(error(informed)[:, N_KIN:], error(study)[:, N_KIN:])
-    assert scale[:3] == pytest.approx(0.1) and np.all(scale[3:] == 1)
+    np.testing.assert_array_equal(error(ins)[:, N_KIN:], error(air_data)[:, N_KIN:])
+    assert std[:3] == pytest.approx(0.1) and std[6] == pytest.approx(1.0)  # m/s, m
     P0 = np.diag(svd_ekf.prior_cov(jnp.float64, std))
     np.testing.assert_allclose(np.sqrt(P0[:N_KIN]), std, rtol=1e-15)
+    np.testing.assert_allclose(np.sqrt(P0[N_KIN:]), sim.PARAMETER_STD, rtol=1e-15)
 
 
 @pytest.mark.slow
