@@ -4,9 +4,11 @@
 1. Monte Carlo on the simulator (:mod:`jaxest.systems.flight_sim`): for every maneuver (elevator
    3-2-1-1, aileron bank-to-bank, rudder doublet), sample rate (10 and 32 Hz) and dtype (float64,
    float32), ``runs`` flights with their own true sensor parameters (drawn from the prior), sensor
-   noise and initial estimate, filtered by the paper's EKF, its SVD-EKF and the improved SVD filter
-   (Kulikova & Tsyganova), all ``vmap``ped. Reported: state RMSE, parameter error, diverged runs,
-   NEES, and which parameters each maneuver makes observable.
+   noise and initial estimate (a GPS-aided INS's uncertainty, :data:`INS_KINEMATIC_STD`), filtered
+   by the paper's EKF, its SVD-EKF and the improved SVD filter (Kulikova & Tsyganova), all
+   ``vmap``ped. Reported: state RMSE, parameter error, diverged runs, NEES (also of the EKF from
+   the air-data start, :func:`air_data_start`), and which parameters each maneuver makes
+   observable.
 2. Real data (:mod:`jaxest.systems.flight_data`): the same reconstruction of the ATTAS elevator,
    aileron and rudder maneuvers and of the HFB-320 record, with biases, scale factors and residuals,
    after estimating the flow vanes' delay behind the inertial sensors by maximum likelihood (a
