@@ -33,7 +33,10 @@ def test_quick_study_writes_the_summary(tmp_path):
     air_data = summary["air_data_start"]["elevator_10hz_float64"]["ekf"]
     assert air_data["runs"] == 3 and air_data["all"]["expected"] == 23
     assert summary["settings"]["kinematic_std"] == pytest.approx(svd_ekf.INS_KINEMATIC_STD)
+    assert own["nis_band_95"][0] < 1 < own["nis_band_95"][1]
+    assert set(own["nis_fraction_in_band"]) == set(svd_ekf.OUTPUTS)
     assert (out / "fig_nees_elevator.png").stat().st_size > 0
+    assert (out / "fig_nis_elevator.png").stat().st_size > 0
     if data is None:
         assert "real_data" not in summary and "flt_data.zip" in summary["real_data_note"]
     else:
@@ -120,6 +123,34 @@ def test_nees_groups_and_band_against_numpy_and_scipy(n):
     np.testing.assert_allclose(
         [low, high], scipy.stats.chi2.ppf([0.025, 0.975], 2300) / 100, rtol=1e-9
     )
+
+
+def test_nis_per_channel_its_bands_and_time_in_band_against_numpy_and_scipy():
+    """Per channel: the NIS averaged over time and runs; the band of that average is scipy's
+    chi-square(runs * steps) quantiles over runs * steps; the fraction of steps in band counts the
+    run average at each step against chi-square(runs) / runs (NumPy, computed here)."""
+    import scipy.stats
+
+    rng = np.random.default_rng(1)
+    runs, steps, m = 40, 30, len(svd_ekf.OUTPUTS)
+    scale = np.linspace(0.7, 1.4, m)  # channels from overconfident to underconfident
+    nis_t = rng.chisquare(1, size=(runs + 3, steps, m)) * scale
+    use = np.ones(runs + 3, bool)
+    use[[0, 5, 9]] = False  # runs left out
+    metrics = {"nees_t": np.ones((runs + 3, steps, 3)), "nis_t": nis_t}
+    out = svd_ekf.consistency(metrics, use)
+    kept = nis_t[use]
+    for i, o in enumerate(svd_ekf.OUTPUTS):
+        assert out["nis"][o] == pytest.approx(kept[..., i].mean(), rel=1e-12)
+        low, high = scipy.stats.chi2.ppf([0.025, 0.975], runs) / runs
+        average = kept[..., i].mean(axis=0)
+        expected = np.mean((average >= low) & (average <= high))
+        assert out["nis_fraction_in_band"][o] == pytest.approx(expected, abs=1e-12)
+    np.testing.assert_allclose(
+        out["nis_band_95"], scipy.stats.chi2.ppf([0.025, 0.975], runs * steps) / (runs * steps),
+        rtol=1e-9,
+    )  # fmt: skip
+    assert out["nis_fraction_in_band"]["h"] < out["nis_fraction_in_band"]["alpha"]
 
 
 def test_record_information_is_the_observability_gramian_of_a_linear_model():

@@ -171,8 +171,8 @@ def nees_by_group(err, cov):
 
 def run_metrics(estimator, model, ys, inputs, mean0, P0, truth, settle: int):
     """Per-run summary of one filter run: squared state errors averaged over time after ``settle``
-    steps, final parameter errors and standard deviations, NEES per group over time, NIS per
-    output channel averaged over time, status."""
+    steps, final parameter errors and standard deviations, NEES per group and NIS per output
+    channel over time, status."""
     result = run_filter(estimator, model, ys, inputs=inputs, prior=Gaussian(mean0, P0))
     err = (result.mean - truth).astype(jnp.float64)
     cov = result.cov.astype(jnp.float64)
@@ -184,7 +184,7 @@ def run_metrics(estimator, model, ys, inputs, mean0, P0, truth, settle: int):
         "param_err": err[-1, N_KIN:],
         "final_std": jnp.sqrt(jnp.diagonal(cov[-1])),
         "nees_t": jax.vmap(nees_by_group)(err, cov),
-        "nis": jnp.mean(nis, axis=0),
+        "nis_t": nis,
         "status": status,
     }
 
@@ -210,7 +210,10 @@ def diverged(metrics):
 @functools.lru_cache
 def nees_band(runs: int, dof: int, coverage: float = 0.95) -> tuple[float, float]:
     """The two-sided ``coverage`` band of the NEES averaged over ``runs`` consistent runs at one
-    time: chi-square(runs dof) / runs (Bar-Shalom, Li & Kirubarajan 2001, sec 5.4.2)."""
+    time: chi-square(runs dof) / runs (Bar-Shalom, Li & Kirubarajan 2001, sec 5.4.2). With
+    ``dof`` = 1 it is the band of one channel's NIS, and with ``runs`` the number of runs times
+    the number of steps, that of its average over time (innovations are white where the filter
+    is consistent)."""
     tail = (1 - coverage) / 2
     low = chi_square_threshold(runs * dof, 1 - tail) / runs
     return low, chi_square_threshold(runs * dof, tail) / runs
@@ -234,10 +237,18 @@ def nees_summary(nees_t, groups=NEES_GROUPS) -> dict:
 
 
 def consistency(metrics, use):
-    """:func:`nees_summary` and the time-averaged NIS per channel over the runs ``use``."""
+    """:func:`nees_summary` and, per output channel, the NIS averaged over time and the runs
+    ``use``, the 95 % band of that average, and the fraction of time steps whose run average lies
+    in the band of one step."""
     out = nees_summary(metrics["nees_t"][use])
-    nis = np.mean(metrics["nis"][use], axis=0)
-    out["nis"] = {o: float(nis[i]) for i, o in enumerate(OUTPUTS)}
+    nis_t = metrics["nis_t"][use]
+    runs, steps = nis_t.shape[:2]
+    average = np.mean(nis_t, axis=0)  # (T, channels): the run average at each time
+    low, high = nees_band(runs, 1)
+    in_band = np.mean((average >= low) & (average <= high), axis=0)
+    out["nis"] = {o: float(np.mean(average[:, i])) for i, o in enumerate(OUTPUTS)}
+    out["nis_band_95"] = list(nees_band(runs * steps, 1))
+    out["nis_fraction_in_band"] = {o: float(in_band[i]) for i, o in enumerate(OUTPUTS)}
     return out
 
 
@@ -302,12 +313,12 @@ def air_data_start(truth, runs, key, model, settle, chunk):
     """The EKF on the flights of ``key`` (the study's simulator, the same draws) started from
     :data:`AIR_DATA_KINEMATIC_STD`, ten times the conditions' initial error and prior std. Its NEES
     excess is h linearised about a velocity estimate that far off, which the maneuvers hardly
-    correct (docs/papers/svd_ekf.md). Returns the :func:`summarise` block and the NEES over time,
-    (runs, T, groups)."""
+    correct (docs/papers/svd_ekf.md). Returns the :func:`summarise` block and the NEES and NIS
+    over time of the runs it kept, (runs, T, groups) and (runs, T, channels)."""
     batch = simulated_batch(truth, runs, key, jnp.float64)
     metrics = monte_carlo(EKF(), model, batch, prior_cov(jnp.float64), settle, chunk)
     use = ~diverged(metrics)
-    return summarise(metrics, use), metrics["nees_t"][use]
+    return summarise(metrics, use), {k: metrics[k][use] for k in ("nees_t", "nis_t")}
 
 
 def observability(metrics):
@@ -342,25 +353,26 @@ def plot_states_and_fits(path, t, truth, estimate, measured, computed, title):
     save(fig, path, dpi=90)
 
 
-def nees_figure(path, nees_runs):
-    """NEES of each group over time, averaged over the runs, with the 95 % band of that average:
-    ``nees_runs[rate][label]`` is one series' NEES, (runs, T, groups); the band is the first
-    series'."""
-    fig, axes = plt.subplots(len(nees_runs), len(NEES_GROUPS), figsize=(14, 3.2 * len(nees_runs)),
+def consistency_figure(path, series_by_rate, metric, panels, title):
+    """``metric`` ("nees_t" or "nis_t") over time, averaged over the runs, with the 95 % band of
+    that average: ``series_by_rate[rate][label][metric]`` is one series' (runs, T, panels), and
+    ``panels`` the (name, degrees of freedom) of its last axis; the band is the first series'."""
+    fig, axes = plt.subplots(len(series_by_rate), len(panels),
+                             figsize=(4.7 * len(panels), 3.2 * len(series_by_rate)),
                              squeeze=False)  # fmt: skip
-    for row, (rate, series) in zip(axes, nees_runs.items(), strict=True):
-        runs, steps = next(iter(series.values())).shape[:2]
+    for row, (rate, series) in zip(axes, series_by_rate.items(), strict=True):
+        runs, steps = next(iter(series.values()))[metric].shape[:2]
         t = np.arange(steps) / rate
-        for g, (ax, (group, dof)) in enumerate(zip(row, NEES_GROUPS.items(), strict=True)):
+        for g, (ax, (name, dof)) in enumerate(zip(row, panels, strict=True)):
             low, high = nees_band(runs, dof)
             ax.fill_between(t, low, high, color="0.85", label=f"95 % band, {runs} runs")
             ax.axhline(dof, color="k", lw=0.8)
-            for (label, nees_t), colour in zip(series.items(), ("r", "b"), strict=False):
-                ax.plot(t, np.mean(nees_t[..., g], axis=0), colour, lw=1, label=label)
-            ax.set_title(f"{group} ({dof}), {rate} Hz")
+            for (label, metrics), colour in zip(series.items(), ("r", "b"), strict=False):
+                ax.plot(t, np.mean(metrics[metric][..., g], axis=0), colour, lw=1, label=label)
+            ax.set_title(f"{name} ({dof}), {rate} Hz")
             ax.set_xlabel("t (s)")
         row[0].legend(fontsize=8)
-    fig.suptitle("NEES averaged over the runs, simulated elevator maneuver, float64")
+    fig.suptitle(title)
     save(fig, path, dpi=90)
 
 
@@ -850,7 +862,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
         "air_data_kinematic_std": AIR_DATA_KINEMATIC_STD.tolist(),
     }}  # fmt: skip
     tables = []
-    nees_runs = {}  # rate -> label -> NEES over time of the float64 elevator runs
+    over_time = {}  # rate -> label -> NEES and NIS over time of the float64 elevator runs
     figures = () if quick else ((10, 1), (32, 2))  # --quick: only the real-data figure
     own_model = [c for c in conditions if c[0] == "elevator" and c[2] == "float64"]
     air_data = [c for c in conditions if c[2] == "float64"]
@@ -893,17 +905,22 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
                 tables.append(table_row(f"{name} (own-model simulation)", "ekf", own))
                 progress.advance(f"{maneuver} {rate} Hz own-model simulation")
             if (maneuver, rate, dtype_name) in air_data:
-                block, air_data_nees = air_data_start(truth, runs, cond_key, model, settle, chunk)
+                block, air_data_t = air_data_start(truth, runs, cond_key, model, settle, chunk)
                 summary["air_data_start"][name] = {"ekf": block}
                 tables.append(table_row(f"{name} ({air_data_label})", "ekf", block))
                 progress.advance(f"{maneuver} {rate} Hz {air_data_label}")
                 if (maneuver, rate, dtype_name) in own_model:  # the figure's elevator runs
-                    nees_runs[rate] = {
-                        f"EKF, {air_data_label}": air_data_nees,
-                        f"SVD-EKF, {study_label}": metrics["svd_ekf"]["nees_t"][common],
-                    }
-        if nees_runs:
-            nees_figure(out / "fig_nees_elevator.png", nees_runs)
+                    over_time[rate] = {
+                        f"EKF, {air_data_label}": air_data_t,
+                        f"SVD-EKF, {study_label}": {k: metrics["svd_ekf"][k][common]
+                                                    for k in ("nees_t", "nis_t")},
+                    }  # fmt: skip
+        if over_time:
+            where = "averaged over the runs, simulated elevator maneuver, float64"
+            consistency_figure(out / "fig_nees_elevator.png", over_time, "nees_t",
+                               list(NEES_GROUPS.items()), f"NEES {where}")  # fmt: skip
+            consistency_figure(out / "fig_nis_elevator.png", over_time, "nis_t",
+                               [(o, 1) for o in OUTPUTS], f"NIS per channel {where}")  # fmt: skip
         for rate, fig in figures:
             maneuver = "elevator" if quick else "aileron"
             path = out / f"fig{fig}_states_{rate}hz.png"
