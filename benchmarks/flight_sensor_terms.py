@@ -5,7 +5,7 @@
 
 The svd-ekf study's real-data estimates disagree between the aileron and the rudder record in
 the sideslip vane's bias and scale factor (docs/papers/svd_ekf.md). This script refits each ATTAS
-record the way :func:`jaxest.studies.svd_ekf.estimate_record` does (the pinned model, a first
+record as :func:`jaxest.studies.svd_ekf.estimate_record` does (the pinned model, a first
 filter pass for the residuals' colour factors, a second with R scaled by them, the RTS smoother's
 x(0|T), P(0|T)), with extra constant states appended to the pinned model, one variant at a time:
 
@@ -35,11 +35,10 @@ jax.config.update("jax_enable_x64", True)
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from jaxest import Gaussian, run  # noqa: E402
+from jaxest import Gaussian  # noqa: E402
 from jaxest.filters import EKF  # noqa: E402
 from jaxest.models import NonlinearGaussian  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
-from jaxest.smoothers import rts_smooth  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
 from jaxest.systems import flight, flight_data  # noqa: E402
 
@@ -87,11 +86,11 @@ class ExtendedNoiseGain(eqx.Module):
 
 class ExtendedObservation(eqx.Module):
     h: eqx.Module
-    index: dict = eqx.field(static=True)  # the pinned model's state names -> position
+    names: tuple[str, ...] = eqx.field(static=True)  # the pinned model's states
     extra: tuple[str, ...] = eqx.field(static=True)
 
     def __call__(self, x, u):
-        n, i = len(self.extra), self.index
+        n, i = len(self.extra), {s: k for k, s in enumerate(self.names)}
         z, extra = x[:-n], dict(zip(self.extra, x[-n:], strict=True))
         y = self.h(z, u)
         if "k_p" in extra:
@@ -110,10 +109,9 @@ def model_with(dt, input_std, output_std, extra):
     pinned, names = flight.pin_parameters(full, svd_ekf.PINNED)
     if not extra:
         return pinned, names
-    index = {s: k for k, s in enumerate(names)}
     model = NonlinearGaussian(
         ExtendedTransition(pinned.transition_fn, extra),
-        ExtendedObservation(pinned.observation_fn, index, extra),
+        ExtendedObservation(pinned.observation_fn, names, extra),
         pinned.Q,
         pinned.R,
         noise_gain=ExtendedNoiseGain(pinned.noise_gain, extra),
@@ -131,20 +129,15 @@ def prior_with(data, extra):
 
 
 def estimate(data, input_std, output_std, extra) -> dict:
-    ys = jnp.asarray(data.outputs)
-    inputs = flight.interval_inputs(jnp.asarray(data.inputs))
-    prior = prior_with(data, extra)
-    model, names = model_with(data.dt, input_std, output_std, extra)
-    first = run(EKF(), model, ys, inputs=inputs, prior=prior)
-    kappa = svd_ekf.colour_factors(first, data.outputs, data.rate_hz)
-    model, _ = model_with(data.dt, input_std, np.asarray(output_std) * np.sqrt(kappa), extra)
-    result = run(EKF(), model, ys, inputs=inputs, prior=prior)
-    smooth = rts_smooth(model, result, inputs=inputs)
-    mean, cov = np.asarray(smooth.mean[0]), np.asarray(smooth.cov[0])
+    fit = svd_ekf.colour_corrected_fit(
+        lambda std: model_with(data.dt, input_std, std, extra), data, prior_with(data, extra),
+        output_std, EKF(),
+    )  # fmt: skip
+    mean, cov, names = np.asarray(fit.smooth.mean[0]), np.asarray(fit.smooth.cov[0]), fit.names
     units = REPORTED | dict.fromkeys(extra, 1.0)
     return {
-        "loglik_white": float(first.loglik),
-        "status": int(np.max(np.asarray(result.status))),
+        "loglik_white": float(fit.first.loglik),
+        "status": int(np.max(np.asarray(fit.result.status))),
         "parameters": {
             p: {"value": float(mean[names.index(p)] * u),
                 "std": float(np.sqrt(cov[names.index(p), names.index(p)]) * u)}

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -32,13 +33,13 @@ import optax
 from jaxest._priors import Gaussian
 from jaxest._run import run as run_filter
 from jaxest._status import Status
-from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF
+from jaxest.filters import EKF, SVDEKF, FilterResult, ImprovedSVDKF
 from jaxest.models import simulate
 from jaxest.plot import plt, save
 from jaxest.progress import Progress
 from jaxest.report import markdown_table, write_json
 from jaxest.setmembership.fdi import chi_square_threshold
-from jaxest.smoothers import rts_smooth
+from jaxest.smoothers import SmootherResult, rts_smooth
 from jaxest.systems import flight, flight_data, flight_sim as sim
 from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
 from jaxest.tune import fit
@@ -666,26 +667,47 @@ def reduced_prior(data, pinned):
     return Gaussian(prior.mean[keep], prior.cov[np.ix_(keep, keep)])
 
 
+class ColourCorrectedFit(NamedTuple):
+    """What :func:`colour_corrected_fit` returns."""
+
+    first: FilterResult  # the pass with white-noise R
+    result: FilterResult  # the pass with R_j kappa_j
+    smooth: SmootherResult  # its RTS smoother
+    model: object  # the second pass's model
+    inputs: jax.Array  # the interval inputs
+    kappa: np.ndarray  # the colour factors, one per output
+    names: tuple[str, ...]  # the model's states
+
+
+def colour_corrected_fit(model_for_r, data, prior, output_std, estimator=None):
+    """A first filter pass for the innovations' colour factors kappa_j (C1), then filter and RTS
+    smoother with measurement noise R_j kappa_j, the white-noise variance that carries the
+    residuals' low-frequency power; ``model_for_r(output_std)`` builds (model, state names) for
+    an output noise std, ``estimator`` as in :func:`filter_record`."""
+    model, names = model_for_r(output_std)
+    first, _ = filter_record(model, data, prior, estimator)
+    kappa = colour_factors(first, data.outputs, data.rate_hz)
+    model, _ = model_for_r(np.asarray(output_std) * np.sqrt(kappa))
+    result, inputs = filter_record(model, data, prior, estimator)
+    smooth = rts_smooth(model, result, inputs=inputs)
+    return ColourCorrectedFit(first, result, smooth, model, inputs, kappa, names)
+
+
 def estimate_record(data, input_std, output_std):
-    """The pinned model (:data:`PINNED`) on one record: a first filter pass for the innovations'
-    colour factors kappa_j (C1), then filter and RTS smoother with measurement noise R_j kappa_j,
-    the white-noise variance that carries the residuals' low-frequency power. The smoothed x(0|T),
-    P(0|T) of that pass are the reported estimates and standard errors: for a constant seen through
-    noise of long-run variance kappa_j R_j, P(0|T) is then the estimate's variance (C1), where the
-    first pass assumed white residuals. For constant parameters of a linear(ised) model x(k|T)
-    is the same at every k and equals the last filtered estimate; the entry
-    ``smoothed_minus_last_filtered`` (in standard errors) checks it. Returns a dict for
+    """The pinned model (:data:`PINNED`) on one record, :func:`colour_corrected_fit`. The smoothed
+    x(0|T), P(0|T) of its second pass are the reported estimates and standard errors: for a
+    constant seen through noise of long-run variance kappa_j R_j, P(0|T) is then the estimate's
+    variance (C1), where the first pass assumed white residuals. For constant parameters of a
+    linear(ised) model x(k|T) is the same at every k and equals the last filtered estimate; the
+    entry ``smoothed_minus_last_filtered`` (in standard errors) checks it. Returns a dict for
     summary.json and (model, prior, kappa) for the joint fit."""
     model_for_r = lambda std: flight.pin_parameters(
         flight.flight_model(data.dt, jnp.asarray(input_std), jnp.asarray(std)), PINNED
     )
-    model, names = model_for_r(output_std)
     prior = reduced_prior(data, PINNED)
-    first, _ = filter_record(model, data, prior)
-    kappa = colour_factors(first, data.outputs, data.rate_hz)
-    model, _ = model_for_r(np.asarray(output_std) * np.sqrt(kappa))
-    result, inputs = filter_record(model, data, prior)
-    smooth = rts_smooth(model, result, inputs=inputs)
+    first, result, smooth, model, inputs, kappa, names = colour_corrected_fit(
+        model_for_r, data, prior, output_std
+    )
     table_of = lambda mean, cov: parameter_table(*trim_reparametrised(mean, cov, names))
     white, last = (table_of(r.mean[-1], r.cov[-1]) for r in (first, result))
     table = table_of(smooth.mean[0], smooth.cov[0])
