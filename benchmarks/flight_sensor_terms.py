@@ -148,15 +148,11 @@ def estimate(data, input_std, output_std, extra) -> dict:
 
 def records_and_noise(summary: dict):
     """The aligned ATTAS records and the tuned input noise of the study's ``summary.json``."""
-    real = summary["real_data"]
-    delays = np.zeros(len(svd_ekf.OUTPUTS))
-    for channel, seconds in real["sensor_delays_s"].items():
-        delays[svd_ekf.OUTPUTS.index(channel)] = seconds
-    tuned = summary["tuning"]["real"]["tuned_noise"]
-    input_std = np.array([tuned[n] for n in flight.INPUTS]) / svd_ekf.PARAMETER_UNITS[: flight.N_IN]
+    delays, input_std = svd_ekf.real_data_settings(summary)
     data_dir = flight_data.find_data_dir()
     records = {
-        m: svd_ekf.aligned(flight_data.load_attas(m, data_dir), delays) for m in real["files"]
+        m: svd_ekf.aligned(flight_data.load_attas(m, data_dir), delays)
+        for m in summary["real_data"]["files"]
     }
     return records, input_std
 

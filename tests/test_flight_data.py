@@ -70,3 +70,11 @@ def test_advance_channels_rejects_bad_limits():
         flight_data.advance_channels(np.zeros((5, 2)), 0.1, [0.0, 0.1], [0.1])
     with pytest.raises(ValueError, match="max_delays"):
         flight_data.advance_channels(np.zeros((5, 2)), 0.1, [0.0, 0.1], [0.0, -0.1])
+
+
+def test_attas_record_rejects_a_table_without_the_45_channels():
+    with pytest.raises(ValueError, match="table"):
+        flight_data.attas_record(np.zeros((10, 20)), "short")
+    record = flight_data.attas_record(np.arange(90.0).reshape(2, 45), "two rows")
+    np.testing.assert_array_equal(record.t, [0.0, 45.0])
+    assert record.outputs[1, 5] == 60.0 * flight_data.FOOT  # pressure altitude, column 16

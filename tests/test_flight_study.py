@@ -286,3 +286,15 @@ def test_channel_rms_skips_missing_samples_and_channels_without_a_warning():
     units = np.asarray(svd_ekf.OUTPUT_UNITS)
     np.testing.assert_allclose(rms[:2], np.array([np.sqrt(25.0 / 3), 2.0]) * units[:2])
     assert np.all(np.isnan(rms[2:]))
+
+
+def test_real_data_settings_read_back_the_delays_and_the_tuned_input_noise():
+    tuned = {"a_x": 1.9, "a_y": 0.007, "a_z": 3.3, "p": 0.07, "q": 0.2, "r": 0.14, "V": 0.13}
+    summary = {"real_data": {"sensor_delays_s": {"beta": 0.08, "alpha": 0.12}},
+               "tuning": {"real": {"tuned_noise": tuned}}}  # fmt: skip
+    delays, input_std = svd_ekf.real_data_settings(summary)
+    expected = np.zeros(6)
+    expected[[svd_ekf.OUTPUTS.index("beta"), svd_ekf.OUTPUTS.index("alpha")]] = [0.08, 0.12]
+    np.testing.assert_array_equal(delays, expected)
+    deg = np.pi / 180.0  # rates are reported in deg/s
+    np.testing.assert_allclose(input_std, [1.9, 0.007, 3.3, 0.07 * deg, 0.2 * deg, 0.14 * deg])

@@ -441,6 +441,19 @@ def aligned(data: flight_data.FlightData, delays) -> flight_data.FlightData:
     return flight_data.FlightData(data.name, data.t, data.inputs, np.asarray(outputs))
 
 
+def real_data_settings(summary: dict):
+    """What the study chose on the real records, read back from its ``summary.json``: the six
+    output delays (s; :func:`aligned`) and the input noise std tuned on the elevator record (SI
+    units, the order of :data:`flight.INPUTS`)."""
+    real = summary["real_data"]
+    delays = np.zeros(len(OUTPUTS))
+    for channel, seconds in real["sensor_delays_s"].items():
+        delays[OUTPUTS.index(channel)] = seconds
+    tuned = summary["tuning"]["real"]["tuned_noise"]
+    input_std = np.array([tuned[n] for n in flight.INPUTS]) / PARAMETER_UNITS[: flight.N_IN]
+    return delays, input_std
+
+
 @eqx.filter_jit
 def _delay_profile(model, outputs, inputs, prior, candidates, dt, limits):
     def loglik(delays):

@@ -120,9 +120,17 @@ def _channels(table, spec):
 def load_attas(maneuver: str, data_dir: str | Path | None = None) -> FlightData:
     """An ATTAS maneuver (``elevator``, ``aileron`` or ``rudder``, or a file name) at 25 Hz."""
     name = ATTAS_FILES.get(maneuver, maneuver)
-    table = _read(_required_dir(data_dir) / name, 45)
+    return attas_record(_read(_required_dir(data_dir) / name, 45), f"ATTAS {maneuver}")
+
+
+def attas_record(table, name: str) -> FlightData:
+    """Rows of an ATTAS table (the 45 channels of ``README.txt`` as columns, read from any of the
+    ``fAttas*`` files) as a record, time counted from its first row."""
+    table = np.asarray(table, np.float64)
+    if table.ndim != 2 or table.shape[0] < 2 or table.shape[1] < 45:
+        raise ValueError(f"table: expected at least 2 rows of 45 ATTAS channels, got {table.shape}")
     return FlightData(
-        name=f"ATTAS {maneuver}",
+        name=name,
         t=table[:, 0] - table[0, 0],
         inputs=_channels(table, _ATTAS_INPUTS),
         outputs=_channels(table, _ATTAS_OUTPUTS),
