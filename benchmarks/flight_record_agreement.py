@@ -1,0 +1,300 @@
+"""Why the ATTAS records disagree on the sideslip vane (issue 16); prints JSON.
+
+    python -m jaxest reproduce svd-ekf --out results
+    python benchmarks/flight_record_agreement.py --summary results/svd-ekf/summary.json [--json PATH]
+
+The svd-ekf study's three ATTAS records are 25-30 s slices of one 170 s flight. The book's files
+hold all of it, each maneuver flown twice back to back: fAttasElv1 and fAttasElv2, then
+fAttasAilRud1 and fAttasAilRud2, each an aileron slice followed by a rudder slice (the first's
+rudder slice is the study's rudder record). This script fits all six slices as
+:func:`jaxest.studies.svd_ekf.estimate_record` does (the pinned model, a first pass for the
+residuals' colour factors, a second with R scaled by them, the RTS smoother's x(0|T), P(0|T); the
+study's delays and tuned input noise from its ``summary.json``; EKF, float64) and reports:
+
+- ``flight``: each slice's time span in the flight, and the largest difference between the
+  slices and the study's records (zero: they are the same samples);
+- ``altitude_pull``: per slice, what holding b_beta at zero mean sideslip (b_beta = the slice's
+  mean beta_m) costs in the first pass's log-likelihood, and the change of each output channel's
+  sum of e_j^2 / S_jj: which measurement sets b_beta;
+- ``models``: every slice's estimates (report units, with the colour-corrected standard errors and
+  whether the slice identifies the parameter: posterior / prior std below 0.5, as in the study)
+  and, for every parameter, the largest disagreement in standard errors between slices that
+  identify it, over the study's three slices and over all six, under three models:
+  - ``study``: the study's model;
+  - ``altitude_deweighted``: the same with the pressure altitude's noise std set to 10 km, which
+    takes its information out;
+  - ``wind_states``: the air mass's motion as three states, the wind's north, east and down
+    components relative to the start of the slice, each a random walk (``wind_step`` m/s per
+    sample); the flow sensors (V, beta, alpha) see the kinematic velocity minus the wind in body
+    axes. The accelerometers' noise std (``accelerometer``, m/s^2), which the study's tuning set to
+    1.9 and 3.3 m/s^2 for a_x and a_z to take up the turbulence, is chosen anew with it: the pair
+    of the grid with the largest summed log-likelihood of the six slices (``wind_grid``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+from pathlib import Path
+
+import equinox as eqx
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import scipy.io  # noqa: E402
+
+from jaxest import Gaussian  # noqa: E402
+from jaxest.filters import EKF  # noqa: E402
+from jaxest.models import NonlinearGaussian  # noqa: E402
+from jaxest.report import emit_json  # noqa: E402
+from jaxest.studies import svd_ekf  # noqa: E402
+from jaxest.systems import flight, flight_data  # noqa: E402
+
+#: the six slices in flight order: name -> (file, first row, rows); the study's records are
+#: ``elevator``, ``aileron`` and ``rudder``
+SLICES = {
+    "elevator": ("fAttasElv1.mat", 0, 626),
+    "elevator_repeat": ("fAttasElv2.mat", 0, 626),
+    "aileron": ("fAttasAilRud1.mat", 0, 751),
+    "aileron_repeat": ("fAttasAilRud2.mat", 0, 751),
+    "rudder": ("fAttasAilRud1.mat", 751, 751),
+    "rudder_repeat": ("fAttasAilRud2.mat", 751, 751),
+}
+STUDY_SLICES = ("elevator", "aileron", "rudder")
+#: the pressure altitude's noise std (m) of ``altitude_deweighted``
+DEWEIGHTED_ALTITUDE_STD = 1e4
+#: the ``wind_states`` grid: accelerometer noise std (m/s^2) x wind step std (m/s per sample)
+ACCELEROMETER_GRID = (0.2, 1.0, 2.0)
+WIND_STEP_GRID = (0.03, 0.05, 0.08)
+WIND_STATES = ("W_N", "W_E", "W_D")
+#: prior std of the wind states (m/s) and of a held b_beta (rad): zero in effect, positive because
+#: the filters take a positive definite prior
+WIND_START_STD, HELD_STD = 1e-6, 1e-9
+
+
+def read_slices(data_dir=None) -> dict[str, flight_data.FlightData]:
+    """The six slices of the ATTAS flight, unaligned, with each slice's start time in the flight."""
+    directory = flight_data.find_data_dir(data_dir)
+    if directory is None:
+        raise ValueError(f"data: no flight-data directory. {flight_data.DOWNLOAD_HINT}")
+    slices = {}
+    for name, (file, first, rows) in SLICES.items():
+        table = scipy.io.loadmat(directory / file)[Path(file).stem][first : first + rows]
+        record = flight_data.attas_record(table, f"ATTAS {name}")
+        slices[name] = (float(table[0, 0]), record)
+    return slices
+
+
+def body_from_earth(phi, theta, psi):
+    """The rotation matrix taking earth-axis (north, east, down) components to body axes (yaw psi,
+    pitch theta, roll phi; eq 26's Euler angles)."""
+    sf, cf, st, ct, ss, cs = (jnp.sin(phi), jnp.cos(phi), jnp.sin(theta), jnp.cos(theta),
+                              jnp.sin(psi), jnp.cos(psi))  # fmt: skip
+    return jnp.array([
+        [ct * cs, ct * ss, -st],
+        [sf * st * cs - cf * ss, sf * st * ss + cf * cs, sf * ct],
+        [cf * st * cs + sf * ss, cf * st * ss - sf * cs, cf * ct],
+    ])  # fmt: skip
+
+
+class WindTransition(eqx.Module):
+    f: eqx.Module
+
+    def __call__(self, x, u):
+        return jnp.concatenate([self.f(x[:-3], u), x[-3:]])
+
+
+class WindNoiseGain(eqx.Module):
+    """The pinned model's input-noise gain, and the wind's own step noise entering its states."""
+
+    gain: eqx.Module
+
+    def __call__(self, x, u):
+        G = self.gain(x[:-3], u)
+        out = jnp.zeros((G.shape[0] + 3, G.shape[1] + 3), G.dtype)
+        return out.at[:-3, :-3].set(G).at[-3:, -3:].set(jnp.eye(3, dtype=G.dtype))
+
+
+class WindObservation(eqx.Module):
+    """The pinned model's outputs at the air-relative velocity [u, v, w] - C_be W."""
+
+    h: eqx.Module
+    names: tuple[str, ...] = eqx.field(static=True)  # the pinned model's states
+
+    def __call__(self, x, u):
+        i = {s: k for k, s in enumerate(self.names)}
+        z, wind = x[:-3], x[-3:]
+        body_wind = body_from_earth(z[i["phi"]], z[i["theta"]], z[i["psi"]]) @ wind
+        velocity = jnp.array([i["u"], i["v"], i["w"]])
+        return self.h(z.at[velocity].add(-body_wind), u)
+
+
+def pinned_model(dt, input_std, output_std):
+    full = flight.flight_model(dt, jnp.asarray(input_std), jnp.asarray(output_std))
+    return flight.pin_parameters(full, svd_ekf.PINNED)
+
+
+def wind_model(dt, input_std, output_std, wind_step):
+    """The pinned model with :data:`WIND_STATES` appended, and all state names."""
+    pinned, names = pinned_model(dt, input_std, output_std)
+    q = pinned.Q.shape[0]
+    Q = jnp.zeros((q + 3, q + 3)).at[:q, :q].set(pinned.Q).at[q:, q:].set(wind_step**2 * jnp.eye(3))
+    model = NonlinearGaussian(
+        WindTransition(pinned.transition_fn),
+        WindObservation(pinned.observation_fn, names),
+        Q,
+        pinned.R,
+        noise_gain=WindNoiseGain(pinned.noise_gain),
+    )
+    return model, names + WIND_STATES
+
+
+def wind_prior(data):
+    """:func:`svd_ekf.reduced_prior` with the wind states at zero (relative to the start)."""
+    prior = svd_ekf.reduced_prior(data, svd_ekf.PINNED)
+    n = prior.mean.shape[0]
+    cov = jnp.zeros((n + 3, n + 3)).at[:n, :n].set(prior.cov)
+    cov = cov.at[n:, n:].set(WIND_START_STD**2 * jnp.eye(3))
+    return Gaussian(jnp.concatenate([prior.mean, jnp.zeros(3)]), cov)
+
+
+def model_and_prior(name, data, input_std, settings):
+    """(model_for_r, prior) of one of the three models of the module docstring."""
+    if name == "wind_states":
+        input_std = np.asarray(input_std).copy()
+        input_std[:3] = settings["accelerometer"]
+        step = settings["wind_step"]
+        return (lambda std: wind_model(data.dt, input_std, std, step)), wind_prior(data)
+    return (lambda std: pinned_model(data.dt, input_std, std)), svd_ekf.reduced_prior(
+        data, svd_ekf.PINNED
+    )
+
+
+def output_std_of(name):
+    std = np.asarray(svd_ekf.REAL_OUTPUT_STD, float).copy()
+    if name == "altitude_deweighted":
+        std[svd_ekf.OUTPUTS.index("h")] = DEWEIGHTED_ALTITUDE_STD
+    return std
+
+
+def fit(name, data, input_std, settings=None) -> dict:
+    """The colour-corrected fit of one slice under model ``name``: the first pass's
+    log-likelihood and the sensor parameters (b_alpha as b_alpha_trim), in report units."""
+    model_for_r, prior = model_and_prior(name, data, input_std, settings)
+    result = svd_ekf.colour_corrected_fit(model_for_r, data, prior, output_std_of(name), EKF())
+    mean, cov, names = svd_ekf.trim_reparametrised(
+        result.smooth.mean[0], result.smooth.cov[0], result.names
+    )
+    _, prior_cov, _ = svd_ekf.trim_reparametrised(prior.mean, prior.cov, result.names)
+    table = svd_ekf.parameter_table(mean, cov, names)
+    for p in table:
+        j = names.index(p)
+        table[p]["identified"] = bool(
+            np.sqrt(cov[j, j] / prior_cov[j, j]) < svd_ekf.OBSERVABLE_RATIO
+        )
+    return {
+        "loglik_white": float(result.first.loglik),
+        "status": int(np.max(np.asarray(result.result.status))),
+        "parameters": table,
+    }
+
+
+def first_pass_loglik(name, data, input_std, settings) -> float:
+    model_for_r, prior = model_and_prior(name, data, input_std, settings)
+    model, _ = model_for_r(output_std_of(name))
+    result, _ = svd_ekf.filter_record(model, data, prior, EKF())
+    return float(result.loglik)
+
+
+def worst_disagreement(fits, slices) -> dict:
+    """Per parameter, the largest |difference| / combined std over pairs of ``slices`` that both
+    identify it: {"pair": "a-b", "se": ...} (None where fewer than two identify it)."""
+    out = {}
+    for p in fits[slices[0]]["parameters"]:
+        ident = [s for s in slices if fits[s]["parameters"][p]["identified"]]
+        if len(ident) < 2:
+            out[p] = None
+            continue
+        pairs = svd_ekf.bias_agreement({s: {p: fits[s]["parameters"][p]} for s in ident})[p]
+        pair, se = max(pairs.items(), key=lambda kv: kv[1])
+        out[p] = {"pair": pair, "se": float(se)}
+    return out
+
+
+def altitude_pull(data, input_std) -> dict:
+    """Holding b_beta at the slice's mean beta_m (zero mean sideslip) in the study's first pass:
+    the log-likelihood change and each output's change of sum_k e_j(k)^2 / S_jj(k)."""
+    model, names = pinned_model(data.dt, input_std, svd_ekf.REAL_OUTPUT_STD)
+    prior = svd_ekf.reduced_prior(data, svd_ekf.PINNED)
+    j = names.index("b_beta")
+    held_at = float(np.nanmean(data.outputs[:, svd_ekf.OUTPUTS.index("beta")]))
+    held = Gaussian(prior.mean.at[j].set(held_at),
+                    prior.cov.at[j, :].set(0.0).at[:, j].set(0.0).at[j, j].set(HELD_STD**2))  # fmt: skip
+
+    def pass_with(p):
+        result, _ = svd_ekf.filter_record(model, data, p, EKF())
+        e, S = np.asarray(result.innovation), np.asarray(result.innovation_cov)
+        return float(result.loglik), np.nansum(e**2 / np.diagonal(S, axis1=-2, axis2=-1), axis=0)
+
+    (free_ll, free_sq), (held_ll, held_sq) = pass_with(prior), pass_with(held)
+    return {
+        "b_beta_held_deg": held_at / svd_ekf.DEG,
+        "loglik_change": held_ll - free_ll,
+        "normalised_square_change": {
+            o: float(held_sq[k] - free_sq[k]) for k, o in enumerate(svd_ekf.OUTPUTS)
+        },
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--summary", required=True, help="the svd-ekf study's summary.json")
+    parser.add_argument("--data", default=None, help="the flight-data directory")
+    parser.add_argument("--json", default=None)
+    args = parser.parse_args()
+    delays, input_std = svd_ekf.real_data_settings(json.loads(Path(args.summary).read_text()))
+    raw = read_slices(args.data)
+    slices = {s: svd_ekf.aligned(d, delays) for s, (_, d) in raw.items()}
+    study_records = {m: flight_data.load_attas(m, args.data) for m in STUDY_SLICES}
+    report = {
+        "flight": {
+            "slices_s": {s: [t0, t0 + float(d.t[-1])] for s, (t0, d) in raw.items()},
+            "max_difference_to_study_records": max(
+                float(np.nanmax(np.abs(np.concatenate([
+                    raw[m][1].inputs - r.inputs, raw[m][1].outputs - r.outputs], axis=1))))
+                for m, r in study_records.items()),
+        },
+        "altitude_pull": {s: altitude_pull(d, input_std) for s, d in slices.items()},
+    }  # fmt: skip
+    print("altitude pull done", flush=True)
+    grid = {}
+    for acc, step in itertools.product(ACCELEROMETER_GRID, WIND_STEP_GRID):
+        settings = {"accelerometer": acc, "wind_step": step}
+        lls = {
+            s: first_pass_loglik("wind_states", d, input_std, settings) for s, d in slices.items()
+        }
+        grid[f"{acc},{step}"] = {**settings, "loglik_white": lls, "total": sum(lls.values())}
+        print("wind grid", acc, step, round(grid[f"{acc},{step}"]["total"], 1), flush=True)
+    best = max(grid.values(), key=lambda g: g["total"])
+    report["wind_grid"] = {
+        "points": grid,
+        "best": {k: best[k] for k in ("accelerometer", "wind_step")},
+    }
+    report["models"] = {}
+    for name in ("study", "altitude_deweighted", "wind_states"):
+        fits = {s: fit(name, d, input_std, report["wind_grid"]["best"]) for s, d in slices.items()}
+        report["models"][name] = {
+            "by_slice": fits,
+            "worst_study_slices_se": worst_disagreement(fits, STUDY_SLICES),
+            "worst_all_slices_se": worst_disagreement(fits, list(SLICES)),
+        }
+        print(name, {s: round(f["loglik_white"], 1) for s, f in fits.items()}, flush=True)
+    emit_json(report, args.json)
+
+
+if __name__ == "__main__":
+    main()
