@@ -1,7 +1,8 @@
 """Why the ATTAS records disagree on the sideslip vane (issue 16); prints JSON.
 
     python -m jaxest reproduce svd-ekf --out results
-    python benchmarks/flight_record_agreement.py --summary results/svd-ekf/summary.json [--json PATH]
+    python benchmarks/flight_record_agreement.py --summary results/svd-ekf/summary.json \
+        [--json PATH] [--figure PNG]
 
 The svd-ekf study's three ATTAS records are 25-30 s slices of one 170 s flight. The book's files
 hold all of it, each maneuver flown twice back to back: fAttasElv1 and fAttasElv2, then
@@ -29,6 +30,8 @@ study's delays and tuned input noise from its ``summary.json``; EKF, float64) an
     axes. The accelerometers' noise std (``accelerometer``, m/s^2), which the study's tuning set to
     1.9 and 3.3 m/s^2 for a_x and a_z to take up the turbulence, is chosen anew with it: the pair
     of the grid with the largest summed log-likelihood of the six slices (``wind_grid``).
+
+``--figure`` draws b_beta, lam_beta and b_alpha_trim of every slice under the three models.
 """
 
 from __future__ import annotations
@@ -47,7 +50,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.io  # noqa: E402
 
-from jaxest import Gaussian  # noqa: E402
+from jaxest import Gaussian, plot  # noqa: E402
 from jaxest.filters import EKF  # noqa: E402
 from jaxest.models import NonlinearGaussian  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
@@ -250,11 +253,39 @@ def altitude_pull(data, input_std) -> dict:
     }
 
 
+#: the parameters drawn by :func:`figure`, with their axis labels
+FIGURE_PARAMETERS = {"b_beta": "b_beta (deg)", "lam_beta": "lam_beta",
+                     "b_alpha_trim": "b_alpha_trim (deg)"}  # fmt: skip
+
+
+def figure(models: dict, path) -> Path:
+    """Each parameter of :data:`FIGURE_PARAMETERS` per slice (flight order) under every model, with
+    its standard error; open markers where the slice does not identify it."""
+    fig, axes = plot.subplots(1, len(FIGURE_PARAMETERS), width=4.6, height=3.6)
+    names = list(SLICES)
+    for ax, (p, label) in zip(axes[0], FIGURE_PARAMETERS.items(), strict=True):
+        for k, (model, entry) in enumerate(models.items()):
+            x = np.arange(len(names)) + 0.2 * (k - 1)
+            table = [entry["by_slice"][s]["parameters"][p] for s in names]
+            value, std = np.array([t["value"] for t in table]), np.array([t["std"] for t in table])
+            filled = np.array([t["identified"] for t in table])
+            ax.errorbar(x, value, yerr=std, fmt="none", capsize=2, color=f"C{k}")
+            ax.plot(x[filled], value[filled], "o", color=f"C{k}", label=model.replace("_", " "))
+            ax.plot(x[~filled], value[~filled], "o", mfc="none", color=f"C{k}")
+        ax.set_xticks(range(len(names)), [s.replace("_repeat", "\nrepeat") for s in names],
+                      fontsize=8)  # fmt: skip
+        ax.set_ylabel(label)
+        ax.axhline(0.0, color="0.7", lw=0.8)
+    axes[0][0].legend(fontsize=8)
+    return plot.save(fig, path)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--summary", required=True, help="the svd-ekf study's summary.json")
     parser.add_argument("--data", default=None, help="the flight-data directory")
     parser.add_argument("--json", default=None)
+    parser.add_argument("--figure", default=None, help="PNG of the estimates per slice")
     args = parser.parse_args()
     delays, input_std = svd_ekf.real_data_settings(json.loads(Path(args.summary).read_text()))
     raw = read_slices(args.data)
@@ -293,6 +324,8 @@ def main() -> None:
             "worst_all_slices_se": worst_disagreement(fits, list(SLICES)),
         }
         print(name, {s: round(f["loglik_white"], 1) for s, f in fits.items()}, flush=True)
+    if args.figure:
+        figure(report["models"], args.figure)
     emit_json(report, args.json)
 
 

@@ -116,3 +116,12 @@ def test_the_altitude_is_deweighted_in_one_model_only():
     np.testing.assert_array_equal(np.delete(deweighted, h), np.delete(OUTPUT_STD, h))
     np.testing.assert_array_equal(agreement.output_std_of("study"), OUTPUT_STD)
     assert flight.OUTPUTS[h] == "h"
+
+
+def test_figure_draws_every_slice_of_every_model(tmp_path):
+    entry = {"value": 0.1, "std": 0.05, "identified": True}
+    slices = {s: {"parameters": dict.fromkeys(agreement.FIGURE_PARAMETERS, entry)}
+              for s in agreement.SLICES}  # fmt: skip
+    models = {m: {"by_slice": slices} for m in ("study", "altitude_deweighted", "wind_states")}
+    path = agreement.figure(models, tmp_path / "agreement.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
