@@ -2,10 +2,6 @@
 first-order expansion about a reference state carried in the input, checked against Jacobians
 computed here with ``jax.jacfwd``."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -14,13 +10,9 @@ import pytest
 from jaxest.studies import svd_ekf
 from jaxest.systems import flight_sim as sim
 from jaxest.systems.flight import N_STATE
+from tests import benchmark_scripts
 
-_spec = importlib.util.spec_from_file_location(
-    "flight_nees", Path(__file__).parent.parent / "benchmarks" / "flight_nees.py"
-)
-flight_nees = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = flight_nees  # equinox Modules look their module up
-_spec.loader.exec_module(flight_nees)
+flight_nees = benchmark_scripts.load("flight_nees")
 
 
 @pytest.fixture(scope="module")

@@ -1,10 +1,6 @@
 """``benchmarks/flight_record_agreement.py`` (issue 16): the wind-state model against the flight
 model and scipy's rotations, and the six ATTAS slices against the study's records."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,14 +10,9 @@ from scipy.spatial.transform import Rotation
 
 from jaxest.studies import svd_ekf
 from jaxest.systems import flight, flight_data
+from tests import benchmark_scripts
 
-_spec = importlib.util.spec_from_file_location(
-    "flight_record_agreement",
-    Path(__file__).parent.parent / "benchmarks" / "flight_record_agreement.py",
-)
-agreement = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = agreement  # equinox Modules look their module up
-_spec.loader.exec_module(agreement)
+agreement = benchmark_scripts.load("flight_record_agreement")
 
 DT, INPUT_STD, OUTPUT_STD = 0.04, svd_ekf.sim.INPUT_STD, svd_ekf.REAL_OUTPUT_STD
 

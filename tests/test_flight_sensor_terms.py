@@ -3,10 +3,6 @@ model built independently: the vane rate terms are the beta vane's lever arms of
 (``flight.LeverArms``), the roll gyro scale factor is the measured roll rate scaled before the
 model sees it, and with every extra state at zero the model is the study's pinned one."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -15,13 +11,9 @@ import pytest
 
 from jaxest.studies import svd_ekf
 from jaxest.systems import flight
+from tests import benchmark_scripts
 
-_spec = importlib.util.spec_from_file_location(
-    "flight_sensor_terms", Path(__file__).parent.parent / "benchmarks" / "flight_sensor_terms.py"
-)
-sensor_terms = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = sensor_terms  # equinox Modules look their module up
-_spec.loader.exec_module(sensor_terms)
+sensor_terms = benchmark_scripts.load("flight_sensor_terms")
 
 DT, INPUT_STD, OUTPUT_STD = 0.04, svd_ekf.sim.INPUT_STD, svd_ekf.REAL_OUTPUT_STD
 

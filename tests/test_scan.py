@@ -2,9 +2,7 @@
 operations (2 x 2 matrix products, affine maps), both directions, lengths that are not powers of
 two, under jit, vmap and grad; its schedule covers the Brent-Kung tree once per combination."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -12,6 +10,7 @@ import numpy as np
 import pytest
 
 from jaxest import scan
+from tests import benchmark_scripts
 
 LENGTHS = [1, 2, 3, 7, 64, 100, 1000]
 
@@ -115,11 +114,7 @@ def test_vmap_and_grad_equal_lax():
 def test_lane_sweep_picks_the_width_fastest_relative_to_the_best():
     """``benchmarks/scan_lanes.py``: each configuration's times are divided by its fastest, so a
     slow configuration does not outvote the others, and the width with the least mean wins."""
-    spec = importlib.util.spec_from_file_location(
-        "scan_lanes", Path(__file__).parent.parent / "benchmarks" / "scan_lanes.py"
-    )
-    scan_lanes = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(scan_lanes)
+    scan_lanes = benchmark_scripts.load("scan_lanes")
     times = {  # (n, T): run seconds for T / C = 16, 256; lax rows (chunks None) are ignored
         (4, 10_000): (2.0, 1.0),
         (20, 10_000): (2.0, 1.0),

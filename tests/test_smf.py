@@ -2,9 +2,7 @@
 loop, the containment guarantee, alarms, the unbounded-set behaviour, transforms, the study."""
 
 import functools
-import importlib.util
 import json
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -20,13 +18,10 @@ from jaxest.setmembership.status import SetStatus as Status
 from jaxest.studies import smf_fdi
 from jaxest.systems import duffing
 from jaxest.systems._box_noise import simulate_box_noise
+from tests import benchmark_scripts
 from tests.lowering import programs_compiled
 
-_spec = importlib.util.spec_from_file_location(
-    "smf_numpy_reference", Path(__file__).parent.parent / "benchmarks" / "smf.py"
-)
-reference = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(reference)
+reference = benchmark_scripts.load("smf")
 
 
 def _filter_runs(keys, L, closed_form_bound=True, mask=(True, True)):
