@@ -1,7 +1,6 @@
 """``benchmarks/flight_record_agreement.py`` (issue 16): the wind-state model against the flight
 model and scipy's rotations, and the six ATTAS slices against the study's records."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -11,15 +10,9 @@ from scipy.spatial.transform import Rotation
 from jaxest.studies import svd_ekf
 from jaxest.systems import flight, flight_data
 from tests import benchmark_scripts
+from tests.flight_model_functions import DT, INPUT_STD, OUTPUT_STD, functions_at
 
 agreement = benchmark_scripts.load("flight_record_agreement")
-
-DT, INPUT_STD, OUTPUT_STD = 0.04, svd_ekf.sim.INPUT_STD, svd_ekf.REAL_OUTPUT_STD
-
-
-@eqx.filter_jit  # one program per model: op by op, RK4 and its Jacobian take seconds
-def functions_at(model, x, u):
-    return model.observation_fn(x, u), model.transition_fn(x, u), model.noise_gain(x, u)
 
 
 @pytest.fixture(scope="module")

@@ -3,7 +3,6 @@ model built independently: the vane rate terms are the beta vane's lever arms of
 (``flight.LeverArms``), the roll gyro scale factor is the measured roll rate scaled before the
 model sees it, and with every extra state at zero the model is the study's pinned one."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,15 +11,9 @@ import pytest
 from jaxest.studies import svd_ekf
 from jaxest.systems import flight
 from tests import benchmark_scripts
+from tests.flight_model_functions import DT, INPUT_STD, OUTPUT_STD, functions_at
 
 sensor_terms = benchmark_scripts.load("flight_sensor_terms")
-
-DT, INPUT_STD, OUTPUT_STD = 0.04, svd_ekf.sim.INPUT_STD, svd_ekf.REAL_OUTPUT_STD
-
-
-@eqx.filter_jit  # one program per model: op by op, RK4 and its Jacobian take seconds
-def functions_at(model, x, u):
-    return model.observation_fn(x, u), model.transition_fn(x, u), model.noise_gain(x, u)
 
 
 @pytest.fixture(scope="module")
