@@ -24,10 +24,10 @@ study's delays and tuned input noise from its ``summary.json``; EKF, float64) an
   - ``study``: the study's model;
   - ``altitude_deweighted``: the same with the pressure altitude's noise std set to 10 km, which
     takes its information out;
-  - ``wind_states``: the air mass's motion as three states, the wind's north, east and down
-    components relative to the start of the slice, each a random walk (``wind_step`` m/s per
-    sample); the flow sensors (V, beta, alpha) see the kinematic velocity minus the wind in body
-    axes. The accelerometers' noise std (``accelerometer``, m/s^2), which the study's tuning set to
+  - ``wind_states``: the air mass's motion as three states (:mod:`jaxest.systems.flight_wind`),
+    the wind's north, east and down components relative to the start of the slice, each a
+    random walk (``wind_step`` m/s per sample); the flow sensors (V, beta, alpha) see the
+    kinematic velocity minus the wind in body axes. The accelerometers' noise std (``accelerometer``, m/s^2), which the study's tuning set to
     1.9 and 3.3 m/s^2 for a_x and a_z to take up the turbulence, is chosen anew with it: the pair
     of the grid with the largest summed log-likelihood of the six slices (``wind_grid``).
 
@@ -41,7 +41,6 @@ import itertools
 import json
 from pathlib import Path
 
-import equinox as eqx
 import jax
 
 jax.config.update("jax_enable_x64", True)
@@ -52,10 +51,9 @@ import scipy.io  # noqa: E402
 
 from jaxest import Gaussian, plot  # noqa: E402
 from jaxest.filters import EKF  # noqa: E402
-from jaxest.models import NonlinearGaussian  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
-from jaxest.systems import flight, flight_data  # noqa: E402
+from jaxest.systems import flight, flight_data, flight_wind  # noqa: E402
 
 #: the six slices in flight order: name -> (file, first row, rows); the study's records are
 #: ``elevator``, ``aileron`` and ``rudder``
@@ -73,7 +71,6 @@ DEWEIGHTED_ALTITUDE_STD = 1e4
 #: the ``wind_states`` grid: accelerometer noise std (m/s^2) x wind step std (m/s per sample)
 ACCELEROMETER_GRID = (0.2, 1.0, 2.0)
 WIND_STEP_GRID = (0.03, 0.05, 0.08)
-WIND_STATES = ("W_N", "W_E", "W_D")
 #: prior std of the wind states (m/s) and of a held b_beta (rad): zero in effect, positive because
 #: the filters take a positive definite prior
 WIND_START_STD, HELD_STD = 1e-6, 1e-9
@@ -92,68 +89,14 @@ def read_slices(data_dir=None) -> dict[str, flight_data.FlightData]:
     return slices
 
 
-def body_from_earth(phi, theta, psi):
-    """The rotation matrix taking earth-axis (north, east, down) components to body axes (yaw psi,
-    pitch theta, roll phi; eq 26's Euler angles)."""
-    sf, cf, st, ct, ss, cs = (jnp.sin(phi), jnp.cos(phi), jnp.sin(theta), jnp.cos(theta),
-                              jnp.sin(psi), jnp.cos(psi))  # fmt: skip
-    return jnp.array([
-        [ct * cs, ct * ss, -st],
-        [sf * st * cs - cf * ss, sf * st * ss + cf * cs, sf * ct],
-        [cf * st * cs + sf * ss, cf * st * ss - sf * cs, cf * ct],
-    ])  # fmt: skip
-
-
-class WindTransition(eqx.Module):
-    f: eqx.Module
-
-    def __call__(self, x, u):
-        return jnp.concatenate([self.f(x[:-3], u), x[-3:]])
-
-
-class WindNoiseGain(eqx.Module):
-    """The pinned model's input-noise gain, and the wind's own step noise entering its states."""
-
-    gain: eqx.Module
-
-    def __call__(self, x, u):
-        G = self.gain(x[:-3], u)
-        out = jnp.zeros((G.shape[0] + 3, G.shape[1] + 3), G.dtype)
-        return out.at[:-3, :-3].set(G).at[-3:, -3:].set(jnp.eye(3, dtype=G.dtype))
-
-
-class WindObservation(eqx.Module):
-    """The pinned model's outputs at the air-relative velocity [u, v, w] - C_be W."""
-
-    h: eqx.Module
-    names: tuple[str, ...] = eqx.field(static=True)  # the pinned model's states
-
-    def __call__(self, x, u):
-        i = {s: k for k, s in enumerate(self.names)}
-        z, wind = x[:-3], x[-3:]
-        body_wind = body_from_earth(z[i["phi"]], z[i["theta"]], z[i["psi"]]) @ wind
-        velocity = jnp.array([i["u"], i["v"], i["w"]])
-        return self.h(z.at[velocity].add(-body_wind), u)
-
-
 def pinned_model(dt, input_std, output_std):
     full = flight.flight_model(dt, jnp.asarray(input_std), jnp.asarray(output_std))
     return flight.pin_parameters(full, svd_ekf.PINNED)
 
 
 def wind_model(dt, input_std, output_std, wind_step):
-    """The pinned model with :data:`WIND_STATES` appended, and all state names."""
-    pinned, names = pinned_model(dt, input_std, output_std)
-    q = pinned.Q.shape[0]
-    Q = jnp.zeros((q + 3, q + 3)).at[:q, :q].set(pinned.Q).at[q:, q:].set(wind_step**2 * jnp.eye(3))
-    model = NonlinearGaussian(
-        WindTransition(pinned.transition_fn),
-        WindObservation(pinned.observation_fn, names),
-        Q,
-        pinned.R,
-        noise_gain=WindNoiseGain(pinned.noise_gain),
-    )
-    return model, names + WIND_STATES
+    """The pinned model with the wind states of :func:`flight_wind.with_wind`, and all names."""
+    return flight_wind.with_wind(*pinned_model(dt, input_std, output_std), wind_step)
 
 
 def wind_prior(data):
