@@ -27,9 +27,10 @@ study's delays and tuned input noise from its ``summary.json``; EKF, float64) an
   - ``wind_states``: the air mass's motion as three states (:mod:`jaxest.systems.flight_wind`),
     the wind's north, east and down components relative to the start of the slice, each a
     random walk (``wind_step`` m/s per sample); the flow sensors (V, beta, alpha) see the
-    kinematic velocity minus the wind in body axes. The accelerometers' noise std (``accelerometer``, m/s^2), which the study's tuning set to
-    1.9 and 3.3 m/s^2 for a_x and a_z to take up the turbulence, is chosen anew with it: the pair
-    of the grid with the largest summed log-likelihood of the six slices (``wind_grid``).
+    kinematic velocity minus the wind in body axes. The accelerometers' noise std
+    (``accelerometer``, m/s^2), which the study's tuning set to 1.9 and 3.3 m/s^2 for a_x and a_z
+    to take up the turbulence, is chosen anew with it: the pair of the grid with the largest
+    summed log-likelihood of the six slices (``wind_grid``).
 
 ``--figure`` draws b_beta, lam_beta and b_alpha_trim of every slice under the three models.
 """
@@ -76,8 +77,8 @@ WIND_STEP_GRID = (0.03, 0.05, 0.08)
 WIND_START_STD, HELD_STD = 1e-6, 1e-9
 
 
-def read_slices(data_dir=None) -> dict[str, flight_data.FlightData]:
-    """The six slices of the ATTAS flight, unaligned, with each slice's start time in the flight."""
+def read_slices(data_dir=None) -> dict[str, tuple[float, flight_data.FlightData]]:
+    """The six slices of the ATTAS flight, unaligned: (start time in the flight (s), record)."""
     directory = flight_data.find_data_dir(data_dir)
     if directory is None:
         raise ValueError(f"data: no flight-data directory. {flight_data.DOWNLOAD_HINT}")
@@ -102,10 +103,7 @@ def wind_model(dt, input_std, output_std, wind_step):
 def wind_prior(data):
     """:func:`svd_ekf.reduced_prior` with the wind states at zero (relative to the start)."""
     prior = svd_ekf.reduced_prior(data, svd_ekf.PINNED)
-    n = prior.mean.shape[0]
-    cov = jnp.zeros((n + 3, n + 3)).at[:n, :n].set(prior.cov)
-    cov = cov.at[n:, n:].set(WIND_START_STD**2 * jnp.eye(3))
-    return Gaussian(jnp.concatenate([prior.mean, jnp.zeros(3)]), cov)
+    return flight_wind.prior_with_wind(prior, WIND_START_STD)
 
 
 def model_and_prior(name, data, input_std, settings):

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from jaxest import Gaussian
 from jaxest.studies import svd_ekf
 from jaxest.systems import flight, flight_wind
 from tests.flight_model_functions import DT, INPUT_STD, OUTPUT_STD, functions_at
@@ -92,3 +93,15 @@ def test_bad_arguments_are_named():
         flight_wind.with_wind(plain, tuple(s for s in names if s != "psi"), 0.05)
     with pytest.raises(ValueError, match="wind_step"):
         flight_wind.with_wind(plain, names, 0.0)
+
+
+def test_prior_with_wind_appends_independent_zero_mean_wind_states():
+    prior = Gaussian(jnp.array([1.0, 2.0]), jnp.array([[2.0, 0.5], [0.5, 1.0]]))
+    wind = flight_wind.prior_with_wind(prior, 0.1)
+    np.testing.assert_array_equal(wind.mean, [1.0, 2.0, 0.0, 0.0, 0.0])
+    expected = np.zeros((5, 5))
+    expected[:2, :2] = prior.cov
+    expected[2:, 2:] = 0.01 * np.eye(3)
+    np.testing.assert_allclose(wind.cov, expected, rtol=1e-6)
+    with pytest.raises(ValueError, match="start_std"):
+        flight_wind.prior_with_wind(prior, -1.0)

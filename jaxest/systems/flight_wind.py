@@ -26,6 +26,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxest._checks import is_concrete
+from jaxest._priors import Gaussian
 from jaxest.models import NonlinearGaussian
 
 #: the states :func:`with_wind` appends: the wind's north, east and down components (m/s)
@@ -113,3 +114,16 @@ def with_wind(model: NonlinearGaussian, names: tuple[str, ...], wind_step):
         noise_gain=_WindNoiseGain(model),
     )
     return wind, tuple(names) + WIND_STATES
+
+
+def prior_with_wind(prior: Gaussian, start_std) -> Gaussian:
+    """``prior`` of the wrapped model's states with the wind states appended: mean zero (the wind
+    is relative to the start) and std ``start_std`` (m/s; a small positive number for "zero", as
+    the filters take a positive definite prior), independent of the rest."""
+    if is_concrete(start_std) and not np.all(np.asarray(start_std) > 0.0):
+        raise ValueError(f"start_std: expected a positive std (m/s), got {start_std}")
+    mean, cov = jnp.asarray(prior.mean), jnp.asarray(prior.cov)
+    wind_cov = jnp.square(start_std) * jnp.eye(_N_WIND, dtype=cov.dtype)
+    return Gaussian(
+        jnp.concatenate([mean, jnp.zeros(_N_WIND, mean.dtype)]), _block_diagonal(cov, wind_cov)
+    )
