@@ -46,7 +46,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy.io  # noqa: E402
 
@@ -54,7 +53,7 @@ from jaxest import Gaussian, plot  # noqa: E402
 from jaxest.filters import EKF  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
-from jaxest.systems import flight, flight_data, flight_wind  # noqa: E402
+from jaxest.systems import flight_data, flight_wind  # noqa: E402
 
 #: the six slices in flight order: name -> (file, first row, rows); the study's records are
 #: ``elevator``, ``aileron`` and ``rudder``
@@ -90,14 +89,9 @@ def read_slices(data_dir=None) -> dict[str, tuple[float, flight_data.FlightData]
     return slices
 
 
-def pinned_model(dt, input_std, output_std):
-    full = flight.flight_model(dt, jnp.asarray(input_std), jnp.asarray(output_std))
-    return flight.pin_parameters(full, svd_ekf.PINNED)
-
-
 def wind_model(dt, input_std, output_std, wind_step):
     """The pinned model with the wind states of :func:`flight_wind.with_wind`, and all names."""
-    return flight_wind.with_wind(*pinned_model(dt, input_std, output_std), wind_step)
+    return flight_wind.with_wind(*svd_ekf.pinned_model(dt, input_std, output_std), wind_step)
 
 
 def wind_prior(data):
@@ -113,7 +107,7 @@ def model_and_prior(name, data, input_std, settings):
         input_std[:3] = settings["accelerometer"]
         step = settings["wind_step"]
         return (lambda std: wind_model(data.dt, input_std, std, step)), wind_prior(data)
-    return (lambda std: pinned_model(data.dt, input_std, std)), svd_ekf.reduced_prior(
+    return (lambda std: svd_ekf.pinned_model(data.dt, input_std, std)), svd_ekf.reduced_prior(
         data, svd_ekf.PINNED
     )
 
@@ -130,16 +124,9 @@ def fit(name, data, input_std, settings=None) -> dict:
     log-likelihood and the sensor parameters (b_alpha as b_alpha_trim), in report units."""
     model_for_r, prior = model_and_prior(name, data, input_std, settings)
     result = svd_ekf.colour_corrected_fit(model_for_r, data, prior, output_std_of(name), EKF())
-    mean, cov, names = svd_ekf.trim_reparametrised(
-        result.smooth.mean[0], result.smooth.cov[0], result.names
-    )
-    _, prior_cov, _ = svd_ekf.trim_reparametrised(prior.mean, prior.cov, result.names)
-    table = svd_ekf.parameter_table(mean, cov, names)
+    table, std_ratio = svd_ekf.smoothed_parameters(result, prior)
     for p in table:
-        j = names.index(p)
-        table[p]["identified"] = bool(
-            np.sqrt(cov[j, j] / prior_cov[j, j]) < svd_ekf.OBSERVABLE_RATIO
-        )
+        table[p]["identified"] = std_ratio[p] < svd_ekf.OBSERVABLE_RATIO
     return {
         "loglik_white": float(result.first.loglik),
         "status": int(np.max(np.asarray(result.result.status))),
@@ -172,7 +159,7 @@ def worst_disagreement(fits, slices) -> dict:
 def altitude_pull(data, input_std) -> dict:
     """Holding b_beta at the slice's mean beta_m (zero mean sideslip) in the study's first pass:
     the log-likelihood change and each output's change of sum_k e_j(k)^2 / S_jj(k)."""
-    model, names = pinned_model(data.dt, input_std, svd_ekf.REAL_OUTPUT_STD)
+    model, names = svd_ekf.pinned_model(data.dt, input_std, svd_ekf.REAL_OUTPUT_STD)
     prior = svd_ekf.reduced_prior(data, svd_ekf.PINNED)
     j = names.index("b_beta")
     held_at = float(np.nanmean(data.outputs[:, svd_ekf.OUTPUTS.index("beta")]))

@@ -34,6 +34,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from jax.scipy.linalg import block_diag  # noqa: E402
 
 from jaxest import Gaussian  # noqa: E402
 from jaxest.filters import EKF  # noqa: E402
@@ -105,8 +106,7 @@ class ExtendedObservation(eqx.Module):
 
 def model_with(dt, input_std, output_std, extra):
     """The study's pinned model with the states ``extra`` appended, and all state names."""
-    full = flight.flight_model(dt, jnp.asarray(input_std), jnp.asarray(output_std))
-    pinned, names = flight.pin_parameters(full, svd_ekf.PINNED)
+    pinned, names = svd_ekf.pinned_model(dt, input_std, output_std)
     if not extra:
         return pinned, names
     model = NonlinearGaussian(
@@ -121,10 +121,8 @@ def model_with(dt, input_std, output_std, extra):
 
 def prior_with(data, extra):
     prior = svd_ekf.reduced_prior(data, svd_ekf.PINNED)
-    n = prior.mean.shape[0]
     std = jnp.asarray([EXTRA_STD[e] for e in extra])
-    cov = jnp.zeros((n + len(extra),) * 2).at[:n, :n].set(prior.cov)
-    cov = cov.at[n:, n:].set(jnp.diag(std**2))
+    cov = block_diag(prior.cov, jnp.diag(std**2))
     return Gaussian(jnp.concatenate([prior.mean, jnp.zeros(len(extra))]), cov)
 
 

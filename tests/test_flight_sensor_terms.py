@@ -20,9 +20,7 @@ sensor_terms = benchmark_scripts.load("flight_sensor_terms")
 def point():
     """A reduced (pinned) state near trim with non-zero sensor parameters, and an input with
     large rates, so that every extra term matters."""
-    _, names = flight.pin_parameters(
-        flight.flight_model(DT, jnp.asarray(INPUT_STD), jnp.asarray(OUTPUT_STD)), svd_ekf.PINNED
-    )
+    _, names = svd_ekf.pinned_model(DT, INPUT_STD, OUTPUT_STD)
     rng = np.random.default_rng(0)
     z = np.zeros(len(names))
     z[:7] = [120.0, 2.0, 5.0, 0.3, 0.05, 0.1, 1000.0]

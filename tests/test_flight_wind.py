@@ -10,13 +10,12 @@ from scipy.spatial.transform import Rotation
 
 from jaxest import EKF, Gaussian, run
 from jaxest.studies import svd_ekf
-from jaxest.systems import flight, flight_wind
+from jaxest.systems import flight_wind
 from tests.flight_model_functions import DT, INPUT_STD, OUTPUT_STD, functions_at
 
 
 def pinned():
-    full = flight.flight_model(DT, jnp.asarray(INPUT_STD), jnp.asarray(OUTPUT_STD))
-    return flight.pin_parameters(full, svd_ekf.PINNED)
+    return svd_ekf.pinned_model(DT, INPUT_STD, OUTPUT_STD)
 
 
 @pytest.fixture(scope="module")

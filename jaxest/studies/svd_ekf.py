@@ -684,6 +684,13 @@ def reduced_prior(data, pinned):
     return Gaussian(prior.mean[keep], prior.cov[np.ix_(keep, keep)])
 
 
+def pinned_model(dt, input_std, output_std):
+    """:func:`flight.flight_model` with :data:`PINNED` held (:func:`flight.pin_parameters`): the
+    model of the real records, and its state names."""
+    full = flight.flight_model(dt, jnp.asarray(input_std), jnp.asarray(output_std))
+    return flight.pin_parameters(full, PINNED)
+
+
 class ColourCorrectedFit(NamedTuple):
     """What :func:`colour_corrected_fit` returns."""
 
@@ -710,6 +717,16 @@ def colour_corrected_fit(model_for_r, data, prior, output_std, estimator=None):
     return ColourCorrectedFit(first, result, smooth, model, inputs, kappa, names)
 
 
+def smoothed_parameters(fit: ColourCorrectedFit, prior):
+    """The sensor parameters of ``fit``'s smoothed x(0|T), b_alpha as b_alpha_trim: their
+    :func:`parameter_table` and each one's posterior / prior std (``prior`` the fit's)."""
+    mean, cov, names = trim_reparametrised(fit.smooth.mean[0], fit.smooth.cov[0], fit.names)
+    _, prior_cov, _ = trim_reparametrised(prior.mean, prior.cov, fit.names)
+    table = parameter_table(mean, cov, names)
+    ratio = np.sqrt(np.diag(cov) / np.diag(prior_cov))
+    return table, {p: float(ratio[names.index(p)]) for p in table}
+
+
 def estimate_record(data, input_std, output_std):
     """The pinned model (:data:`PINNED`) on one record, :func:`colour_corrected_fit`. The smoothed
     x(0|T), P(0|T) of its second pass are the reported estimates and standard errors: for a
@@ -718,28 +735,21 @@ def estimate_record(data, input_std, output_std):
     linear(ised) model x(k|T) is the same at every k and equals the last filtered estimate; the
     entry ``smoothed_minus_last_filtered`` (in standard errors) checks it. Returns a dict for
     summary.json and (model, prior, kappa) for the joint fit."""
-    model_for_r = lambda std: flight.pin_parameters(
-        flight.flight_model(data.dt, jnp.asarray(input_std), jnp.asarray(std)), PINNED
-    )
+    model_for_r = lambda std: pinned_model(data.dt, input_std, std)
     prior = reduced_prior(data, PINNED)
-    first, result, smooth, model, inputs, kappa, names = colour_corrected_fit(
-        model_for_r, data, prior, output_std
-    )
-    table_of = lambda mean, cov: parameter_table(*trim_reparametrised(mean, cov, names))
-    white, last = (table_of(r.mean[-1], r.cov[-1]) for r in (first, result))
-    table = table_of(smooth.mean[0], smooth.cov[0])
-    _, cov0, trim_names = trim_reparametrised(smooth.mean[0], smooth.cov[0], names)
-    _, prior_cov0, _ = trim_reparametrised(prior.mean, prior.cov, names)
-    std_ratio = np.sqrt(np.diag(cov0) / np.diag(prior_cov0))[N_KIN:]
+    fit = colour_corrected_fit(model_for_r, data, prior, output_std)
+    first, result, smooth, model, inputs, kappa, names = fit
+    white, last = (parameter_table(*trim_reparametrised(r.mean[-1], r.cov[-1], names))
+                   for r in (first, result))  # fmt: skip
+    table, std_ratio = smoothed_parameters(fit, prior)
     entry = {
         "colour_factor": {o: float(kappa[j]) for j, o in enumerate(OUTPUTS)},
         "parameters": table,
         "white_noise_std": {p: white[p]["std"] for p in table},
         "smoothed_minus_last_filtered": max(
             abs(table[p]["value"] - last[p]["value"]) / table[p]["std"] for p in table),
-        "std_ratio": {p: float(std_ratio[i]) for i, p in enumerate(trim_names[N_KIN:])},
-        "identified": [p for i, p in enumerate(trim_names[N_KIN:])
-                       if std_ratio[i] < OBSERVABLE_RATIO],
+        "std_ratio": std_ratio,
+        "identified": [p for p, ratio in std_ratio.items() if ratio < OBSERVABLE_RATIO],
         "least_informed": record_information(prior.cov, smooth.cov[0], names),
         "residual_rms": smoothed_residual_rms(data, model, smooth, inputs),
     }  # fmt: skip

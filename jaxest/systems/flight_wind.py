@@ -23,6 +23,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jax.scipy.linalg import block_diag
 from jaxtyping import Array, Float
 
 from jaxest._checks import is_concrete
@@ -46,9 +47,9 @@ def body_from_earth(phi, theta, psi) -> Float[Array, "3 3"]:
     ])  # fmt: skip
 
 
-def _block_diagonal(a, b):
-    out = jnp.zeros((a.shape[0] + b.shape[0], a.shape[1] + b.shape[1]), jnp.result_type(a, b))
-    return out.at[: a.shape[0], : a.shape[1]].set(a).at[a.shape[0] :, a.shape[1] :].set(b)
+def _check_positive(name: str, value, unit: str) -> None:
+    if is_concrete(value) and not np.all(np.asarray(value) > 0.0):
+        raise ValueError(f"{name}: expected a positive std ({unit}), got {value}")
 
 
 class _WindTransition(eqx.Module):
@@ -63,7 +64,7 @@ class _WindNoiseGain(eqx.Module):
 
     def __call__(self, x, u):
         G, _ = self.model.process_noise(x[:-_N_WIND], u, 0)
-        return _block_diagonal(G, jnp.eye(_N_WIND, dtype=G.dtype))
+        return block_diag(G, jnp.eye(_N_WIND, dtype=G.dtype))
 
 
 class WindObservation(eqx.Module):
@@ -90,8 +91,8 @@ class WindModel(NonlinearGaussian):
         identity = jnp.eye(_N_WIND, dtype=F.dtype)
         return (
             jnp.concatenate([z_next, x[-_N_WIND:]]),
-            _block_diagonal(F, identity),
-            _block_diagonal(G, identity),
+            block_diag(F, identity),
+            block_diag(G, identity),
             self.Q,
         )
 
@@ -103,9 +104,8 @@ def with_wind(model: NonlinearGaussian, names: tuple[str, ...], wind_step):
     missing = [s for s in ("u", "v", "w", "phi", "theta", "psi") if s not in names]
     if missing:
         raise ValueError(f"names: the flight model's states {missing} are missing from {names}")
-    if is_concrete(wind_step) and not np.all(np.asarray(wind_step) > 0.0):
-        raise ValueError(f"wind_step: expected a positive std (m/s per sample), got {wind_step}")
-    Q = _block_diagonal(model.Q, wind_step**2 * jnp.eye(_N_WIND, dtype=model.Q.dtype))
+    _check_positive("wind_step", wind_step, "m/s per sample")
+    Q = block_diag(model.Q, wind_step**2 * jnp.eye(_N_WIND, dtype=model.Q.dtype))
     wind = WindModel(
         _WindTransition(model),
         WindObservation(model, tuple(names)),
@@ -120,10 +120,9 @@ def prior_with_wind(prior: Gaussian, start_std) -> Gaussian:
     """``prior`` of the wrapped model's states with the wind states appended: mean zero (the wind
     is relative to the start) and std ``start_std`` (m/s; a small positive number for "zero", as
     the filters take a positive definite prior), independent of the rest."""
-    if is_concrete(start_std) and not np.all(np.asarray(start_std) > 0.0):
-        raise ValueError(f"start_std: expected a positive std (m/s), got {start_std}")
+    _check_positive("start_std", start_std, "m/s")
     mean, cov = jnp.asarray(prior.mean), jnp.asarray(prior.cov)
     wind_cov = jnp.square(start_std) * jnp.eye(_N_WIND, dtype=cov.dtype)
     return Gaussian(
-        jnp.concatenate([mean, jnp.zeros(_N_WIND, mean.dtype)]), _block_diagonal(cov, wind_cov)
+        jnp.concatenate([mean, jnp.zeros(_N_WIND, mean.dtype)]), block_diag(cov, wind_cov)
     )
