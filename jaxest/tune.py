@@ -98,6 +98,9 @@ def fit(
             (shape n x n for Cholesky, n for log-diagonal).
         optimizer: an optax transformation (default ``optax.adam(0.05)``); line-search
             methods such as ``optax.lbfgs()`` work too (they receive the value and the loss).
+            ``optax.lbfgs()`` takes the gradient in three places of the compiled program (its
+            line search's two branches and the first step), so it compiles about three times
+            as long as Adam: worth it where its fewer steps save more (docs/performance.md).
         num_steps: optimiser steps.
     """
     if not isinstance(params, dict):
