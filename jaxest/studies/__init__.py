@@ -24,6 +24,20 @@ STUDIES: dict[str, str] = {
     "sigma-point": "jaxest.studies.sigma_point",
 }
 
+#: each study's wall time (s) at full size in a fresh-clone ``make reproduce`` (two at a time,
+#: 2-core CPU, cf5d05b, 2026-11-29, a slow day; docs/performance.md): ``reproduce --jobs`` starts
+#: the longest first by these where no earlier run into the output folder timed every study
+TYPICAL_SECONDS: dict[str, float] = {
+    "filters": 62,
+    "svd-ekf": 492,
+    "wiener": 9,
+    "smf-fdi": 31,
+    "network": 124,
+    "adaptive": 209,
+    "parallel": 285,
+    "sigma-point": 200,
+}
+
 
 def load(name: str):
     """The module of study ``name``."""
