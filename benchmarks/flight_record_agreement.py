@@ -159,8 +159,8 @@ def worst_disagreement(fits, slices) -> dict:
 def altitude_pull(data, input_std) -> dict:
     """Holding b_beta at the slice's mean beta_m (zero mean sideslip) in the study's first pass:
     the log-likelihood change and each output's change of sum_k e_j(k)^2 / S_jj(k)."""
-    model, names = svd_ekf.pinned_model(data.dt, input_std, svd_ekf.REAL_OUTPUT_STD)
-    prior = svd_ekf.reduced_prior(data, svd_ekf.PINNED)
+    model_for_r, prior = model_and_prior("study", data, input_std, None)
+    model, names = model_for_r(output_std_of("study"))
     j = names.index("b_beta")
     held_at = float(np.nanmean(data.outputs[:, svd_ekf.OUTPUTS.index("beta")]))
     held = Gaussian(prior.mean.at[j].set(held_at),

@@ -47,6 +47,11 @@ def body_from_earth(phi, theta, psi) -> Float[Array, "3 3"]:
     ])  # fmt: skip
 
 
+def _with_wind_block(matrix):
+    """blockdiag(``matrix``, I): a block of the wrapped model with the wind's identity block."""
+    return block_diag(matrix, jnp.eye(_N_WIND, dtype=matrix.dtype))
+
+
 def _check_positive(name: str, value, unit: str) -> None:
     if is_concrete(value) and not np.all(np.asarray(value) > 0.0):
         raise ValueError(f"{name}: expected a positive std ({unit}), got {value}")
@@ -64,7 +69,7 @@ class _WindNoiseGain(eqx.Module):
 
     def __call__(self, x, u):
         G, _ = self.model.process_noise(x[:-_N_WIND], u, 0)
-        return block_diag(G, jnp.eye(_N_WIND, dtype=G.dtype))
+        return _with_wind_block(G)
 
 
 class WindObservation(eqx.Module):
@@ -87,14 +92,9 @@ class WindModel(NonlinearGaussian):
     Q = blockdiag(Q_z, wind_step^2 I)."""
 
     def transition(self, x, u, k):
-        z_next, F, G, Q = self.transition_fn.model.transition(x[:-_N_WIND], u, k)
-        identity = jnp.eye(_N_WIND, dtype=F.dtype)
-        return (
-            jnp.concatenate([z_next, x[-_N_WIND:]]),
-            block_diag(F, identity),
-            block_diag(G, identity),
-            self.Q,
-        )
+        z_next, F, G, _ = self.transition_fn.model.transition(x[:-_N_WIND], u, k)
+        x_next = jnp.concatenate([z_next, x[-_N_WIND:]])
+        return x_next, _with_wind_block(F), _with_wind_block(G), self.Q
 
 
 def with_wind(model: NonlinearGaussian, names: tuple[str, ...], wind_step):
