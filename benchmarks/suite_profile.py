@@ -1,0 +1,184 @@
+"""Where the test suite's time goes: for every test, the seconds JAX spent tracing programs to
+jaxprs, lowering them to MLIR and XLA spent compiling them (the compile events JAX records through
+``jax.monitoring``), and the rest of the test's wall time (running the programs, Python, waiting
+for subprocesses, whose own compiling is not seen). Issue 17 bounds `make test` in wall time; this
+says what that time is made of.
+
+A pytest plugin and a summary. Record (each pytest-xdist worker writes ``DIR/<worker>.jsonl``),
+then summarise:
+
+    PYTHONPATH=benchmarks python -m pytest -n 2 -p suite_profile --suite-profile=DIR
+    python benchmarks/suite_profile.py DIR [--top 15] [--json out.json]
+
+A test's time counts from its setup to its teardown, so a module-scoped fixture's cost lands on
+the first test that uses it. XLA programs that compile in under :data:`SMALL_PROGRAM_S` are
+counted apart: they are mostly single operations run outside ``jit`` (one program per operation,
+shape and dtype), where the rest are the jitted estimators the tests exercise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+#: the compile phases JAX records, by the last part of their event name
+PHASES = {
+    "/jax/core/compile/jaxpr_trace_duration": "trace",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
+    "/jax/core/compile/backend_compile_duration": "compile",
+}
+#: XLA programs compiled faster than this (seconds) are counted as small
+SMALL_PROGRAM_S = 0.05
+
+
+class _Recorder:
+    """The current test's seconds and counts per phase, fed by ``jax.monitoring``."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        self.start = time.perf_counter()
+        self.seconds = collections.Counter()
+        self.counts = collections.Counter()
+
+    def __call__(self, event: str, seconds: float, **kwargs) -> None:
+        phase = PHASES.get(event)
+        if phase is None:
+            return
+        self.seconds[phase] += seconds
+        self.counts[phase] += 1
+        if phase == "compile" and seconds < SMALL_PROGRAM_S:
+            self.seconds["compile_small"] += seconds
+            self.counts["compile_small"] += 1
+
+    def begin(self) -> None:
+        self.start = time.perf_counter()
+        self.seconds.clear()
+        self.counts.clear()
+
+    def end(self, test_id: str) -> None:
+        record = {
+            "test": test_id,
+            "wall": time.perf_counter() - self.start,
+            "seconds": dict(self.seconds),
+            "counts": dict(self.counts),
+            "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        }
+        with self.path.open("a") as stream:
+            stream.write(json.dumps(record) + "\n")
+
+
+_recorder: _Recorder | None = None
+
+
+def pytest_addoption(parser):
+    parser.addoption(
+        "--suite-profile",
+        metavar="DIR",
+        help="write each test's tracing, lowering and compiling seconds to DIR/<worker>.jsonl",
+    )
+
+
+def pytest_configure(config):
+    global _recorder
+    directory = config.getoption("--suite-profile")
+    if not directory:
+        return
+    import jax
+
+    Path(directory).mkdir(parents=True, exist_ok=True)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "main")
+    _recorder = _Recorder(Path(directory) / f"{worker}.jsonl")
+    jax.monitoring.register_event_duration_secs_listener(_recorder)
+
+
+def pytest_unconfigure(config):
+    global _recorder
+    if _recorder is not None:
+        import jax
+
+        jax.monitoring.unregister_event_duration_listener(_recorder)
+        _recorder = None
+
+
+@pytest.hookimpl(hookwrapper=True)
+def pytest_runtest_protocol(item, nextitem):
+    """Around a test's setup, call and teardown, in the process that runs it (a pytest-xdist
+    controller receives its workers' reports, but runs no test)."""
+    if _recorder is not None:
+        _recorder.begin()
+    yield
+    if _recorder is not None:
+        _recorder.end(item.nodeid)
+
+
+def read_records(directory: Path) -> list[dict]:
+    """Every test's record in the ``*.jsonl`` files of ``directory``."""
+    records = [
+        json.loads(line)
+        for path in sorted(directory.glob("*.jsonl"))
+        for line in path.read_text().splitlines()
+    ]
+    if not records:
+        raise ValueError(f"directory: no test records (*.jsonl) in {directory}")
+    return records
+
+
+def _split(records: list[dict]) -> dict:
+    """Summed wall seconds and their split into the phases, the small programs' compiling and
+    the rest, with the number of programs traced, lowered and compiled."""
+    seconds, counts = collections.Counter(), collections.Counter()
+    wall = 0.0
+    for record in records:
+        wall += record["wall"]
+        seconds.update(record["seconds"])
+        counts.update(record["counts"])
+    phases = {phase: seconds[phase] for phase in ("trace", "lower", "compile")}
+    return {
+        "tests": len(records),
+        "wall_s": wall,
+        **{f"{phase}_s": value for phase, value in phases.items()},
+        "compile_small_s": seconds["compile_small"],
+        "other_s": wall - sum(phases.values()),
+        "programs_compiled": counts["compile"],
+        "small_programs_compiled": counts["compile_small"],
+    }
+
+
+def summarise(records: list[dict], top: int) -> dict:
+    """The whole suite's split (:func:`_split`), and the same for the ``top`` slowest test files
+    and tests; ``suite_xla_flags``: the ``XLA_FLAGS`` the suite ran with (``"xla_flags"``,
+    added by :func:`~jaxest.report.emit_json`, are the summarising process's)."""
+    by_file = collections.defaultdict(list)
+    for record in records:
+        by_file[record["test"].split("::")[0]].append(record)
+    files = sorted(by_file, key=lambda name: -sum(r["wall"] for r in by_file[name]))
+    slowest = sorted(records, key=lambda r: -r["wall"])[:top]
+    return {
+        "suite_xla_flags": sorted({r["xla_flags"] for r in records}),
+        "suite": _split(records),
+        "files": [{"file": name, **_split(by_file[name])} for name in files[:top]],
+        "tests": [{"test": r["test"], **_split([r])} for r in slowest],
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("directory", type=Path, help="the --suite-profile directory of a run")
+    parser.add_argument("--top", type=int, default=15, help="files and tests listed (default 15)")
+    parser.add_argument("--json", help="write the summary here as well as to stdout")
+    args = parser.parse_args(argv)
+    from jaxest.report import emit_json
+
+    emit_json(summarise(read_records(args.directory), args.top), args.json)
+
+
+if __name__ == "__main__":
+    main()
