@@ -4,8 +4,9 @@ jaxprs, lowering them to MLIR and XLA spent compiling them (the compile events J
 for subprocesses, whose own compiling is not seen). Issue 17 bounds `make test` in wall time; this
 says what that time is made of.
 
-A pytest plugin and a summary. Record (each pytest-xdist worker writes ``DIR/<worker>.jsonl``),
-then summarise:
+A pytest plugin and a summary. Record (each pytest-xdist worker appends to ``DIR/<worker>.jsonl``,
+so give each run an empty directory, and give it with ``=``: as a separate argument pytest takes
+it for a path to test and roots the run elsewhere), then summarise:
 
     PYTHONPATH=benchmarks python -m pytest -n 2 -p suite_profile --suite-profile=DIR
     python benchmarks/suite_profile.py DIR [--top 15] [--json out.json]
