@@ -58,20 +58,14 @@ def cholesky_rows(S):
     return L
 
 
-def forward_substitution(L, b):
-    """L x = b, b a list of m rows (each (..., runs))."""
-    x = []
-    for i in range(len(L)):
-        x.append((b[i] - sum(L[i][p] * x[p] for p in range(i))) / L[i][i])
-    return x
-
-
-def back_substitution(L, b):
-    """L^T x = b."""
+def substitution(L, b, transposed=False):
+    """x with L x = b (``transposed``: L^T x = b), b a list of m rows (each (..., runs))."""
     m = len(L)
+    entry = (lambda i, p: L[p][i]) if transposed else (lambda i, p: L[i][p])
     x = [None] * m
-    for i in reversed(range(m)):
-        x[i] = (b[i] - sum(L[p][i] * x[p] for p in range(i + 1, m))) / L[i][i]
+    for i in reversed(range(m)) if transposed else range(m):
+        done = range(i + 1, m) if transposed else range(i)
+        x[i] = (b[i] - sum(entry(i, p) * x[p] for p in done)) / L[i][i]
     return x
 
 
@@ -93,8 +87,8 @@ def batch_last_filter(model, prior):
             S = products(HP, H.T[:, :, None]) + R[:, :, None]
             innovation = y - H @ x
             L = cholesky_rows(S)
-            gain_t = jnp.stack(back_substitution(L, forward_substitution(L, list(HP))))
-            whitened = forward_substitution(L, list(innovation))
+            gain_t = jnp.stack(substitution(L, substitution(L, list(HP)), transposed=True))
+            whitened = substitution(L, list(innovation))
             loglik = loglik - 0.5 * (
                 sum(w**2 for w in whitened)
                 + 2 * sum(jnp.log(L[i][i]) for i in range(m))
