@@ -158,12 +158,12 @@ def summarise(records: list[dict], top: int) -> dict:
     by_file = collections.defaultdict(list)
     for record in records:
         by_file[record["test"].split("::")[0]].append(record)
-    files = sorted(by_file, key=lambda name: -sum(r["wall"] for r in by_file[name]))
+    files = [{"file": name, **_split(file_records)} for name, file_records in by_file.items()]
     slowest = sorted(records, key=lambda r: -r["wall"])[:top]
     return {
         "suite_xla_flags": sorted({r["xla_flags"] for r in records}),
         "suite": _split(records),
-        "files": [{"file": name, **_split(by_file[name])} for name in files[:top]],
+        "files": sorted(files, key=lambda f: -f["wall_s"])[:top],
         "tests": [{"test": r["test"], **_split([r])} for r in slowest],
     }
 
