@@ -28,7 +28,7 @@ import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import jax  # noqa: E402
-from speed import PROBLEMS, RUNS, T, jaxest_case, modes, passes  # noqa: E402
+from speed import PROBLEMS, RUNS, T, jaxest_case, modes, options, passes  # noqa: E402
 
 from jaxest.report import emit_json  # noqa: E402
 
@@ -53,7 +53,11 @@ def operation_times(trace_dir: Path) -> tuple[collections.Counter, collections.C
 def profile(problem: str, mode: str, pass_name: str, runs: int, steps: int, top: int) -> dict:
     fn, ys, scales = jaxest_case(problem, runs, steps)
     wrap, args = next((w, a) for m, w, a, _ in modes(ys, scales) if m == mode)
-    compiled = jax.jit(wrap(passes(fn)[pass_name])).lower(*args).compile()
+    compiled = (
+        jax.jit(wrap(passes(fn)[pass_name]))
+        .lower(*args)
+        .compile(options(mode).get("compiler_options"))
+    )
     jax.block_until_ready(compiled(*args))  # warm up
     with tempfile.TemporaryDirectory() as trace_dir:
         jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)
@@ -82,7 +86,7 @@ def main(argv=None):
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("problem", choices=list(PROBLEMS))
-    parser.add_argument("mode", choices=["single", "vmap200"])
+    parser.add_argument("mode", choices=["single", "vmap200", "minor200"])
     parser.add_argument("pass_name", metavar="pass", choices=["forward", "value_and_grad"])
     parser.add_argument("--top", type=int, default=12, help="operations listed (default 12)")
     parser.add_argument("--steps", type=int, default=T, help="time steps per run (default 1000)")

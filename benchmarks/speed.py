@@ -5,8 +5,10 @@ systems) and ``duffing_ekf`` (the Duffing map of docs/papers/smf.md with Gaussia
 against dynamax; ``duffing_smf``, the set-membership filter of docs/papers/smf.md on the Duffing
 protocol (T = 100 steps per run, bounded noise), against the plain NumPy loop of
 benchmarks/smf.py (dynamax has no set-membership filter): its rows carry ``reference`` and their
-``dynamax_us_per_step`` column holds the NumPy loop's time. Modes: one sequence, and 200 runs under
-``vmap`` with a different process covariance (SMF: process bound) per run. Passes: forward
+``dynamax_us_per_step`` column holds the NumPy loop's time. Modes: one sequence, and 200 runs with
+a different process covariance (SMF: process bound) per run, under ``jax.vmap`` ("vmap200") and
+with jaxest under :func:`jaxest.vmap_minor`, the runs on the minor axis ("minor200"; the
+reference stays under ``jax.vmap``). Passes: forward
 (log-likelihood and filtered means; SMF: log volume of the last set and the centres) and
 ``value_and_grad`` of that scalar with respect to the Q (bound) scale. The NumPy loop has no
 gradient: the SMF's value_and_grad rows compare with its forward loop.
@@ -32,6 +34,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import jaxest as je  # noqa: E402
+from jaxest import xla_flags  # noqa: E402
 from jaxest.filters import KalmanFilter  # noqa: E402
 from jaxest.linalg import cholesky, logdet_chol  # noqa: E402
 from jaxest.report import emit_json, timed  # noqa: E402
@@ -190,20 +193,35 @@ def dynamax_rows(name, build, args):
     rows = []
     for mode, wrap, call_args, per in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args)
-            _, t_theirs, _ = timed(wrap(passes(theirs)[pass_name]), call_args)
+            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args, **options(mode))
+            _, t_theirs, _ = timed(reference(mode, wrap)(passes(theirs)[pass_name]), call_args)
             rows.append(row(name, mode, pass_name, t_ours / per, t_theirs / per, c_ours))
     return rows
 
 
 def modes(ys, scales):
     """(mode, wrap, call arguments, steps per call): one sequence at scale 1, and every run of
-    ``ys`` (runs, T, m) under ``vmap`` with its own scale."""
+    ``ys`` (runs, T, m) with its own scale under ``jax.vmap`` and under ``je.vmap_minor``."""
     runs, steps = ys.shape[:2]
     return [
         ("single", lambda fn: fn, (jnp.asarray(1.0), ys[0]), steps),
         ("vmap200", jax.vmap, (scales, ys), steps * runs),
+        ("minor200", je.vmap_minor, (scales, ys), steps * runs),
     ]
+
+
+def reference(mode, wrap):
+    """How the reference runs a mode: every batched mode under ``jax.vmap``."""
+    return jax.vmap if mode == "minor200" else wrap
+
+
+def options(mode) -> dict:
+    """``timed``'s compiler options for jaxest in a mode: ``vmap_minor``'s own (its function is
+    compiled here as part of ``timed``'s jit, which does not pass on the options of a jit
+    nested in it)."""
+    if mode != "minor200":
+        return {}
+    return {"compiler_options": xla_flags.compile_options(xla_flags.NO_YNN_FUSION)}
 
 
 def smf_rows(args):
@@ -220,10 +238,11 @@ def smf_rows(args):
         "vmap200": numpy_seconds(numpy_volume, scales_np[:NUMPY_RUNS], ys_np[:NUMPY_RUNS])
         / (NUMPY_RUNS * steps),
     }
+    t_numpy["minor200"] = t_numpy["vmap200"]
     rows = []
     for mode, wrap, call_args, per in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args)
+            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args, **options(mode))
             rows.append(row("duffing_smf", mode, pass_name, t_ours / per, t_numpy[mode], c_ours))
             rows[-1]["reference"] = "numpy loop (benchmarks/smf.py), forward only"
     return rows

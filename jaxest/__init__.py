@@ -21,6 +21,7 @@ from jaxest._status import (
     finite_status as finite_status,
     status_where as status_where,
 )
+from jaxest.batching import vmap_minor as vmap_minor, vmap_minor_fallbacks as vmap_minor_fallbacks
 from jaxest.em import EMResult as EMResult, fit_em as fit_em
 from jaxest.filters import (
     EKF as EKF,
@@ -119,7 +120,7 @@ __all__ = [
     "log_variances", "lqr_gain", "monte_carlo", "neg_loglik", "raise_if_failed", "rts_smooth",
     "run", "sigma_point_rts_smooth", "simulate", "solve_care", "solve_dare", "solve_filter_care",
     "solve_filter_dare", "status_where", "steady_state_gain", "steady_state_smooth",
-    "supervised_mse", "wiener_smooth",
+    "supervised_mse", "vmap_minor", "vmap_minor_fallbacks", "wiener_smooth",
 ]  # fmt: skip
 
 

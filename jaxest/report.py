@@ -66,12 +66,12 @@ def timed_call(call) -> tuple[object, float]:
     return result, time.perf_counter() - start
 
 
-def timed(fn, args, repeats: int = 5) -> tuple[float, float, object]:
+def timed(fn, args, repeats: int = 5, compiler_options=None) -> tuple[float, float, object]:
     """(compile seconds, best run seconds, output) of ``jax.jit(fn)(*args)``: compiled ahead of
-    time, run once to warm up (its output is returned), then the fastest of ``repeats`` runs (the
-    benchmarks' per-step times). ``repeats=0``: the warm-up run's time, for runs too long to
-    repeat."""
-    compiled, compile_s = timed_call(lambda: jax.jit(fn).lower(*args).compile())
+    time (with ``compiler_options``), run once to warm up (its output is returned), then the
+    fastest of ``repeats`` runs (the benchmarks' per-step times). ``repeats=0``: the warm-up
+    run's time, for runs too long to repeat."""
+    compiled, compile_s = timed_call(lambda: jax.jit(fn).lower(*args).compile(compiler_options))
     output, warm_up_s = timed_call(lambda: compiled(*args))
     repeat_s = [timed_call(lambda: compiled(*args))[1] for _ in range(repeats)]
     return compile_s, min(repeat_s, default=warm_up_s), output

@@ -68,3 +68,17 @@ def current() -> str:
 def _name(flag: str) -> str:
     """``--name`` of ``--name=value``."""
     return flag.split("=", 1)[0]
+
+
+#: ``jax.jit(f, compiler_options=compile_options(NO_YNN_FUSION))``: XLA:CPU hands no fusion of
+#: ``f`` to YNNPACK. It takes every fusion with 4 096 elements or more; on the batch-minor arrays
+#: of :func:`jaxest.vmap_minor` those are the contractions, which YNNPACK ran 3-4x slower than
+#: XLA's own loops (docs/performance.md).
+NO_YNN_FUSION = {"xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+def compile_options(options: dict) -> dict | None:
+    """``options`` for ``jax.jit(..., compiler_options=...)`` where the running jaxlib is one
+    they were measured on (:data:`MEASURED_JAXLIB`; an XLA that does not know an option rejects
+    the program), else ``None``."""
+    return dict(options) if jaxlib.__version__.startswith(MEASURED_JAXLIB) else None
