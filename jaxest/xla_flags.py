@@ -72,7 +72,7 @@ def _name(flag: str) -> str:
 
 #: ``jax.jit(f, compiler_options=compile_options(NO_YNN_FUSION))``: XLA:CPU hands no fusion of
 #: ``f`` to YNNPACK. It takes every fusion with 4 096 elements or more; on the batch-minor arrays
-#: of :func:`jaxest.vmap_minor` those are the contractions, which YNNPACK ran 3-4x slower than
+#: of :func:`jaxest.vmap_minor` those are the contractions, which YNNPACK ran 2.4-3x slower than
 #: XLA's own loops (docs/performance.md).
 NO_YNN_FUSION = {"xla_cpu_experimental_ynn_fusion_type": ""}
 

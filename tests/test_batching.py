@@ -227,3 +227,14 @@ def test_compile_options_only_on_the_measured_jaxlib(monkeypatch):
     assert xla_flags.compile_options(xla_flags.NO_YNN_FUSION) == xla_flags.NO_YNN_FUSION
     monkeypatch.setattr(jaxlib, "__version__", "0.11.0")
     assert xla_flags.compile_options(xla_flags.NO_YNN_FUSION) is None
+
+
+def test_gradient_sums_per_run_and_shared_cotangents():
+    """``add_any`` (autodiff's sum of cotangents) of a per-run cotangent and a shared one (the
+    ones of ``jnp.sum(x)``), which takes no size-1 broadcasting."""
+    grad = jax.grad(lambda x, w: jnp.sum(w * x * x) + jnp.sum(x))
+    x = jax.random.normal(jax.random.PRNGKey(7), (RUNS, 3))
+    w = jnp.arange(1.0, 4.0)
+    expected = jax.vmap(grad, in_axes=(0, None))(x, w)
+    close(vmap_minor(grad, in_axes=(0, None))(x, w), expected, jnp.float64)
+    assert vmap_minor_fallbacks(grad, x, w, in_axes=(0, None)) == {}
