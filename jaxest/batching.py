@@ -34,6 +34,7 @@ that ``jit``).
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Callable, Sequence
 
 import jax
@@ -43,6 +44,7 @@ from jax import lax
 from jax.extend import core as jex_core
 
 from jaxest import xla_flags
+from jaxest.linalg import SMALL_MATMUL
 
 #: primitives that act entry by entry (operands of equal shape, or broadcast from size 1)
 ELEMENTWISE = frozenset(
@@ -104,7 +106,7 @@ def vmap_minor(fn: Callable, in_axes=0) -> Callable:
     @functools.wraps(fn)
     def call(*args):
         _flat_arguments(args, in_axes)  # the argument errors, before anything is traced
-        return (top_level if _at_top_level() else nested)(*args)
+        return (top_level if at_top_level() else nested)(*args)
 
     return call
 
@@ -129,7 +131,7 @@ def vmap_minor_fallbacks(fn: Callable, *args, in_axes=0) -> dict[str, int]:
     return counts
 
 
-def _at_top_level() -> bool:
+def at_top_level() -> bool:
     """Whether nothing traces the current call (no caller's ``jit``, ``vmap`` or ``grad``)."""
     with jex_core.take_current_trace() as trace:
         return type(trace).__name__ == "EvalTrace"
@@ -358,9 +360,16 @@ def _gather(eqn, values, batched, size, fallbacks):
 
 
 def _dot_general(eqn, values, batched, size, fallbacks):
-    """A contraction as a multiply and a sum over the contracted axes: each operand arranged
-    as (batch dims, lhs free, rhs free, contracted, runs), with size-1 axes where it has none."""
+    """A contraction of at most ``SMALL_MATMUL`` multiply-adds per run as a multiply and a
+    sum over the contracted axes: each operand arranged as (batch dims, lhs free, rhs free,
+    contracted, runs), with size-1 axes where it has none. A larger one is XLA's dot, with the
+    runs as a batch dimension in front (:func:`_fallback`): the broadcast product of two 23 x 23
+    matrices would be 23 times the size of either."""
+    out_elements = math.prod(eqn.outvars[0].aval.shape)
+    lhs_shape = eqn.invars[0].aval.shape
     (lhs_contract, rhs_contract), (lhs_batch, rhs_batch) = eqn.params["dimension_numbers"]
+    if out_elements * math.prod(lhs_shape[d] for d in lhs_contract) > SMALL_MATMUL:
+        return _fallback(eqn, values, batched, size, fallbacks)
     lhs_rank, rhs_rank = (len(var.aval.shape) for var in eqn.invars)
     lhs_free = [d for d in range(lhs_rank) if d not in lhs_contract and d not in lhs_batch]
     rhs_free = [d for d in range(rhs_rank) if d not in rhs_contract and d not in rhs_batch]

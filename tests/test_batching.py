@@ -117,6 +117,16 @@ def test_kalman_filter_runs_batch_minor_throughout():
     assert vmap_minor_fallbacks(jax.value_and_grad(loglik), scales, ys) == {}
 
 
+def test_a_large_product_is_a_batched_dot():
+    """Past ``SMALL_MATMUL`` multiply-adds a product falls back to XLA's dot (8 x 8 x 8 = 512
+    is the last one written as a multiply and a sum)."""
+    for n, expected in ((8, {}), (9, {"dot_general": 1})):
+        a = jax.random.normal(jax.random.PRNGKey(n), (RUNS, n, n))
+        square = lambda a: a @ a
+        assert vmap_minor_fallbacks(square, a) == expected
+        close(vmap_minor(square)(a), jax.vmap(square)(a), jnp.float64)
+
+
 def test_a_primitive_without_rule_falls_back_and_is_reported():
     matrices = jax.random.normal(jax.random.PRNGKey(2), (RUNS, 3, 3))
     smallest_eigenvalue = lambda a: jnp.linalg.eigvalsh(a @ a.T)[0] + jnp.sum(a)
