@@ -36,6 +36,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -48,8 +49,8 @@ from jaxest.linalg import SMALL_MATMUL
 
 #: primitives that act entry by entry (operands of equal shape, or broadcast from size 1)
 ELEMENTWISE = frozenset(
-    """abs acos acosh add add_any and asin asinh atan atan2 atanh cbrt ceil clamp conj convert_element_type
-    copy cos cosh digamma div eq erf erf_inv erfc exp exp2 expm1 floor ge gt imag
+    """abs acos acosh add add_any and asin asinh atan atan2 atanh cbrt ceil clamp conj
+    convert_element_type copy cos cosh digamma div eq erf erf_inv erfc exp exp2 expm1 floor ge gt imag
     integer_pow is_finite le lgamma log log1p logistic lt max min mul ne neg nextafter not or
     population_count pow real reduce_precision rem round rsqrt select_n shift_left
     shift_right_arithmetic shift_right_logical sign sin sinh sqrt square stop_gradient sub tan
@@ -82,19 +83,17 @@ def vmap_minor(fn: Callable, in_axes=0) -> Callable:
     _check_in_axes(in_axes)
 
     def batched(*args):
-        leaves, batched_leaves, size = _flat_arguments(args, in_axes)
-        closed, out_shapes = jax.make_jaxpr(_flat(fn, args), return_shape=True)(
-            *_one_run(leaves, batched_leaves)
-        )
+        traced = _traced(fn, args, in_axes)
         values = [
-            jnp.moveaxis(x, 0, -1) if b else x for x, b in zip(leaves, batched_leaves, strict=True)
+            jnp.moveaxis(x, 0, -1) if b else x
+            for x, b in zip(traced.leaves, traced.batched, strict=True)
         ]
-        outs, out_batched = evaluate(closed.jaxpr, closed.consts, values, batched_leaves, size)
+        outs, out_batched = traced.evaluate(values)
         outs = [
-            jnp.moveaxis(out, -1, 0) if b else jnp.broadcast_to(out, (size, *jnp.shape(out)))
+            jnp.moveaxis(out, -1, 0) if b else jnp.broadcast_to(out, (traced.size, *jnp.shape(out)))
             for out, b in zip(outs, out_batched, strict=True)
         ]
-        return jax.tree.unflatten(jax.tree.structure(out_shapes), outs)
+        return jax.tree.unflatten(traced.out_tree, outs)
 
     # compiler options are for a program of its own: JAX rejects them on a jit that a caller's
     # jit, vmap or grad traces into its own program
@@ -115,24 +114,46 @@ def vmap_minor_fallbacks(fn: Callable, *args, in_axes=0) -> dict[str, int]:
     """The primitives of ``vmap_minor(fn, in_axes)(*args)`` that have no batch-minor rule and
     run under ``jax.vmap`` with the batch moved to the front (name: how many equations)."""
     _check_in_axes(in_axes)
-    leaves, batched_leaves, size = _flat_arguments(args, in_axes)
-    closed = jax.make_jaxpr(_flat(fn, args))(*_one_run(leaves, batched_leaves))
+    traced = _traced(fn, args, in_axes)
     counts: dict[str, int] = {}
     avals = [
-        _aval(x, (*x.shape[1:], size) if b else None)
-        for x, b in zip(leaves, batched_leaves, strict=True)
+        _aval(x, (*x.shape[1:], traced.size) if b else None)
+        for x, b in zip(traced.leaves, traced.batched, strict=True)
     ]
-    jax.eval_shape(
-        lambda *values: evaluate(closed.jaxpr, closed.consts, values, batched_leaves, size, counts)[
-            0
-        ],
-        *avals,
-    )
+    jax.eval_shape(lambda *values: traced.evaluate(values, counts)[0], *avals)
     return counts
 
 
+class _Traced(NamedTuple):
+    """``fn`` traced for one run: its jaxpr, the arguments' leaves, which are batched, the
+    batch size and the outputs' tree."""
+
+    jaxpr: jex_core.ClosedJaxpr
+    leaves: list
+    batched: list[bool]
+    size: int
+    out_tree: object
+
+    def evaluate(self, values, fallbacks=None):
+        """The jaxpr on the leaves' batch-minor ``values`` (:func:`evaluate`)."""
+        return evaluate(
+            self.jaxpr.jaxpr, self.jaxpr.consts, values, self.batched, self.size, fallbacks
+        )
+
+
+def _traced(fn, args, in_axes) -> _Traced:
+    leaves, batched, size = _flat_arguments(args, in_axes)
+    tree = jax.tree.structure(args)
+    one_run = [_aval(x, x.shape[1:] if b else None) for x, b in zip(leaves, batched, strict=True)]
+    closed, out_shapes = jax.make_jaxpr(
+        lambda *flat: fn(*jax.tree.unflatten(tree, flat)), return_shape=True
+    )(*one_run)
+    return _Traced(closed, leaves, batched, size, jax.tree.structure(out_shapes))
+
+
 def at_top_level() -> bool:
-    """Whether nothing traces the current call (no caller's ``jit``, ``vmap`` or ``grad``)."""
+    """Whether nothing traces the current call (no caller's ``jit``, ``vmap`` or ``grad``): the
+    current trace is JAX's eval trace (``jax.extend`` names no type for it)."""
     with jex_core.take_current_trace() as trace:
         return type(trace).__name__ == "EvalTrace"
 
@@ -181,21 +202,9 @@ def _flat_arguments(args, in_axes) -> tuple[list, list[bool], int]:
     return leaves, batched_leaves, sizes.pop()
 
 
-def _one_run(leaves, batched_leaves) -> list[jax.ShapeDtypeStruct]:
-    return [
-        _aval(x, x.shape[1:] if b else None) for x, b in zip(leaves, batched_leaves, strict=True)
-    ]
-
-
 def _aval(x, shape=None) -> jax.ShapeDtypeStruct:
     """``x``'s shape (or ``shape``) and dtype."""
     return jax.ShapeDtypeStruct(jnp.shape(x) if shape is None else tuple(shape), jnp.result_type(x))
-
-
-def _flat(fn, args):
-    """``fn`` as a function of the flat leaves of ``args``."""
-    tree = jax.tree.structure(args)
-    return lambda *leaves: fn(*jax.tree.unflatten(tree, leaves))
 
 
 # ---- the interpreter -------------------------------------------------------------------------
