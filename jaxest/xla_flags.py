@@ -18,6 +18,9 @@ small fusions and its gradient twice as many. Three flags of the pinned jaxlib (
 
 docs/performance.md ("XLA flags that compile faster") has the measurements.
 
+Options for one program rather than the process go to ``jax.jit(..., compiler_options=...)``
+through :func:`compile_options`: :data:`NO_YNN_FUSION`, which :func:`jaxest.vmap_minor` uses.
+
 XLA reads ``XLA_FLAGS`` once, when JAX starts its CPU backend (the first computation), and an
 XLA that does not know a flag aborts the process. So :func:`add` changes nothing on a jaxlib
 other than the ones measured (:data:`MEASURED_JAXLIB`), never overrides a flag already in

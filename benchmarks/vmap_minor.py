@@ -1,0 +1,88 @@
+"""Every Gaussian filter under ``jax.vmap`` and under ``je.vmap_minor`` (the runs on the minor axis).
+
+On speed.py's ``linear_6x3`` problem and data (200 runs, each with its own Q scale, T = 1000):
+the forward pass (log-likelihood and filtered means), compiled once per filter and batching, then
+``--rounds`` rounds alternating the two, each the best of 3. Prints per filter the µs per step
+and run of each batching (best of the rounds), their compile seconds, the primitives that fall
+back to ``jax.vmap`` under ``vmap_minor`` (``je.vmap_minor_fallbacks``) and whether the two agree
+(log-likelihoods to 1e-9 relative).
+
+    python benchmarks/vmap_minor.py [--rounds 2] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+from speed import RUNS, T, gaussian_data, linear_model  # noqa: E402
+
+import jaxest as je  # noqa: E402
+from jaxest import xla_flags  # noqa: E402
+from jaxest.report import emit_json, timed  # noqa: E402
+
+FILTERS = [je.KalmanFilter, je.EKF, je.InformationFilter, je.SquareRootKF, je.SVDEKF, je.UKF]
+
+
+def filter_run(estimator, model, prior):
+    """(q_scale, ys) -> (log-likelihood, filtered means) of ``estimator`` with Q scaled."""
+
+    def run(q_scale, ys):
+        scaled = je.LinearGaussian(model.F, model.H, q_scale * model.Q, model.R)
+        result = je.run(estimator, scaled, ys, prior=prior, save=je.SaveAt(fields=("mean",)))
+        return result.loglik, result.mean
+
+    return run
+
+
+def measure(rounds: int) -> list[dict]:
+    model, prior = linear_model(6, 3)
+    ys, scales = gaussian_data(model, prior, RUNS, T)
+    minor_options = xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
+    rows = []
+    for filter_type in FILTERS:
+        run = filter_run(filter_type(), model, prior)
+        batchings = {
+            "vmap": (jax.vmap(run), None),
+            "vmap_minor": (je.vmap_minor(run), minor_options),
+        }
+        times = {name: [] for name in batchings}
+        compile_s, outputs = {}, {}
+        for _ in range(rounds):
+            for name, (batched, options) in batchings.items():
+                compiling, seconds, outputs[name] = timed(batched, (scales, ys), 3, options)
+                compile_s.setdefault(name, compiling)
+                times[name].append(seconds / (RUNS * T) * 1e6)
+        a, b = outputs["vmap"][0], outputs["vmap_minor"][0]
+        rows.append(
+            {
+                "filter": filter_type.__name__,
+                "vmap_us_per_step": min(times["vmap"]),
+                "vmap_minor_us_per_step": min(times["vmap_minor"]),
+                "minor_over_vmap": min(times["vmap_minor"]) / min(times["vmap"]),
+                "compile_s": compile_s,
+                "fallbacks": je.vmap_minor_fallbacks(run, scales, ys),
+                "agree": bool(jnp.allclose(a, b, rtol=1e-9)),
+            }
+        )
+        print(rows[-1], flush=True)
+    return rows
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--rounds", type=int, default=2, help="alternating rounds (default 2)")
+    parser.add_argument("--json", help="write the results here as well as to stdout")
+    args = parser.parse_args(argv)
+    rows = measure(args.rounds)
+    emit_json({"device": str(jax.devices()[0]), "runs": RUNS, "steps": T, "rows": rows}, args.json)
+
+
+if __name__ == "__main__":
+    main()
