@@ -46,7 +46,7 @@ def test_gaussian_filters_match_vmap(estimator, dtype):
     model, prior, ys, scales = linear_case(dtype)
 
     def one_run(scale, y):
-        result = je.run(estimator, eqx_replace_Q(model, scale), y, prior=prior)
+        result = je.run(estimator, scaled_Q(model, scale), y, prior=prior)
         return result.loglik, result.mean, result.cov, result.status
 
     close(vmap_minor(one_run)(scales, ys), jax.vmap(one_run)(scales, ys), dtype)
@@ -57,13 +57,14 @@ def test_every_gaussian_filter_matches_vmap(filter_type):
     model, prior, ys, scales = linear_case(jnp.float64)
 
     def one_run(scale, y):
-        result = je.run(filter_type(), eqx_replace_Q(model, scale), y, prior=prior)
+        result = je.run(filter_type(), scaled_Q(model, scale), y, prior=prior)
         return result.loglik, result.mean, result.cov, result.status
 
     close(vmap_minor(one_run)(scales, ys), jax.vmap(one_run)(scales, ys), jnp.float64)
 
 
-def eqx_replace_Q(model, scale):
+def scaled_Q(model, scale):
+    """``model`` with its Q scaled by ``scale``."""
     return je.LinearGaussian(model.F, model.H, scale * model.Q, model.R)
 
 
@@ -72,7 +73,7 @@ def test_value_and_grad_inside_matches_vmap(dtype):
     """Differentiated inside: the Kalman filter's closed-form gradient rule already applied."""
     model, prior, ys, scales = linear_case(dtype)
     loglik = lambda scale, y: (
-        je.run(je.KalmanFilter(), eqx_replace_Q(model, scale), y, prior=prior).loglik
+        je.run(je.KalmanFilter(), scaled_Q(model, scale), y, prior=prior).loglik
     )
     value_and_grad = jax.value_and_grad(loglik)
     close(vmap_minor(value_and_grad)(scales, ys), jax.vmap(value_and_grad)(scales, ys), dtype)
@@ -81,7 +82,7 @@ def test_value_and_grad_inside_matches_vmap(dtype):
 def test_gradient_taken_outside_is_autodiff_of_the_primal():
     model, prior, ys, scales = linear_case(jnp.float64)
     loglik = lambda scale, y: (
-        je.run(je.KalmanFilter(), eqx_replace_Q(model, scale), y, prior=prior).loglik
+        je.run(je.KalmanFilter(), scaled_Q(model, scale), y, prior=prior).loglik
     )
     total = lambda batched: lambda s: jnp.sum(batched(loglik)(s, ys))
     close(jax.grad(total(vmap_minor))(scales), jax.grad(total(jax.vmap))(scales), jnp.float64)
@@ -115,7 +116,7 @@ def test_kalman_filter_runs_batch_minor_throughout():
     """Every primitive of the Kalman filter and its gradient has a batch-minor rule."""
     model, prior, ys, scales = linear_case(jnp.float64)
     loglik = lambda scale, y: (
-        je.run(je.KalmanFilter(), eqx_replace_Q(model, scale), y, prior=prior).loglik
+        je.run(je.KalmanFilter(), scaled_Q(model, scale), y, prior=prior).loglik
     )
     assert vmap_minor_fallbacks(loglik, scales, ys) == {}
     assert vmap_minor_fallbacks(jax.value_and_grad(loglik), scales, ys) == {}
@@ -226,7 +227,7 @@ def test_pytree_arguments_and_shared_outputs():
         je.run(je.KalmanFilter(), model, y, prior=prior).loglik,
         jnp.ones(2),
     )
-    batched_models = jax.vmap(lambda s: eqx_replace_Q(model, s))(scales)
+    batched_models = jax.vmap(lambda s: scaled_Q(model, s))(scales)
     minor = vmap_minor(one_run)(batched_models, ys)
     close(minor, jax.vmap(one_run)(batched_models, ys), jnp.float64)
     assert minor[1].shape == (RUNS, 2)
