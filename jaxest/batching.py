@@ -95,17 +95,14 @@ def vmap_minor(fn: Callable, in_axes=0) -> Callable:
         ]
         return jax.tree.unflatten(traced.out_tree, outs)
 
-    # compiler options are for a program of its own: JAX rejects them on a jit that a caller's
-    # jit, vmap or grad traces into its own program
-    top_level = jax.jit(
-        batched, compiler_options=xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
+    compiled = jit_with_options_at_top_level(
+        jax.jit, batched, xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
     )
-    nested = jax.jit(batched)
 
     @functools.wraps(fn)
     def call(*args):
         _flat_arguments(args, in_axes)  # the argument errors, before anything is traced
-        return (top_level if at_top_level() else nested)(*args)
+        return compiled(*args)
 
     return call
 
@@ -151,9 +148,18 @@ def _traced(fn, args, in_axes) -> _Traced:
     return _Traced(closed, leaves, batched, size, jax.tree.structure(out_shapes))
 
 
-def at_top_level() -> bool:
-    """Whether nothing traces the current call (no caller's ``jit``, ``vmap`` or ``grad``): the
-    current trace is JAX's eval trace (``jax.extend`` names no type for it)."""
+def jit_with_options_at_top_level(jit: Callable, fn: Callable, compiler_options) -> Callable:
+    """``jit(fn)`` (``jax.jit`` or ``eqx.filter_jit``) compiled with ``compiler_options`` where
+    nothing traces the call, without them where a caller's ``jit``, ``vmap`` or ``grad`` does:
+    JAX takes compiler options only for a program of its own, and rejects them on a jit that
+    is traced into a caller's program."""
+    top_level, nested = jit(fn, compiler_options=compiler_options), jit(fn)
+    return lambda *args: (top_level if _at_top_level() else nested)(*args)
+
+
+def _at_top_level() -> bool:
+    """Whether nothing traces the current call: the current trace is JAX's eval trace
+    (``jax.extend`` names no type for it)."""
     with jex_core.take_current_trace() as trace:
         return type(trace).__name__ == "EvalTrace"
 
@@ -234,21 +240,13 @@ def evaluate(jaxpr, consts, values, batched, size, fallbacks=None):
             outs = outs if eqn.primitive.multiple_results else [outs]
             out_batched = [False] * len(outs)
         else:
-            rule = _rule(eqn.primitive.name)
+            rule = _RULES.get(eqn.primitive.name, _fallback)
             outs, out_batched = rule(eqn, in_values, in_batched, size, fallbacks)
         for var, out, b in zip(eqn.outvars, outs, out_batched, strict=True):
             if not isinstance(var, jex_core.DropVar):
                 env[var] = (out, b)
     outs = [read(var) for var in jaxpr.outvars]
     return [value for value, _ in outs], [b for _, b in outs]
-
-
-def _rule(name: str):
-    if name in ELEMENTWISE:
-        return _elementwise
-    if name in SAME_PARAMETERS:
-        return _same_parameters
-    return _RULES.get(name, _fallback)
 
 
 def _minor(x, size):
@@ -533,6 +531,8 @@ def _inline(jaxpr_param: str, closed: bool = True):
 
 
 _RULES: dict[str, Callable] = {
+    **dict.fromkeys(ELEMENTWISE, _elementwise),
+    **dict.fromkeys(SAME_PARAMETERS, _same_parameters),
     "broadcast_in_dim": _broadcast_in_dim,
     "reshape": _reshape,
     "transpose": _transpose,

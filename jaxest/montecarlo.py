@@ -30,7 +30,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from jaxest import xla_flags
 from jaxest._checks import check_positive_int, is_concrete
-from jaxest.batching import at_top_level, vmap_minor
+from jaxest.batching import jit_with_options_at_top_level, vmap_minor
 
 RUNS_AXIS = "runs"
 
@@ -101,8 +101,7 @@ def monte_carlo(
             padded = jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
         else:
             padded = jax.lax.with_sharding_constraint(padded, sharding)
-    program = _BATCHINGS[batching][0 if at_top_level() else 1]
-    out = program(run_fn, padded, _is_typed(key))
+    out = _BATCHINGS[batching](run_fn, padded, _is_typed(key))
     if across_processes:
         from jax.experimental import multihost_utils
 
@@ -126,16 +125,13 @@ def _all_chunks(run_fn: Callable, raw_keys, typed: bool, *, batch: Callable):
     return jax.lax.map(batch(run_fn), chunk_keys)
 
 
-#: per batching, the compiled programs called at top level and inside a caller's transformation
-#: (which takes no compiler options: jaxest.batching)
+#: the compiled program of each batching
 _BATCHINGS = {
-    "vmap": (eqx.filter_jit(functools.partial(_all_chunks, batch=jax.vmap)),) * 2,
-    "minor": (
-        eqx.filter_jit(
-            functools.partial(_all_chunks, batch=vmap_minor),
-            compiler_options=xla_flags.compile_options(xla_flags.NO_YNN_FUSION),
-        ),
-        eqx.filter_jit(functools.partial(_all_chunks, batch=vmap_minor)),
+    "vmap": eqx.filter_jit(functools.partial(_all_chunks, batch=jax.vmap)),
+    "minor": jit_with_options_at_top_level(
+        eqx.filter_jit,
+        functools.partial(_all_chunks, batch=vmap_minor),
+        xla_flags.compile_options(xla_flags.NO_YNN_FUSION),
     ),
 }
 

@@ -52,7 +52,7 @@ def add(flags: tuple[str, ...]) -> tuple[str, ...]:
     for flag in flags:
         if not (flag.startswith("--") and "=" in flag):
             raise ValueError(f"flags: {flag!r} is not of the form --name=value")
-    if not jaxlib.__version__.startswith(MEASURED_JAXLIB):
+    if not _measured_jaxlib():
         return ()
     present = current().split()
     names_present = {_name(item) for item in present}
@@ -84,4 +84,9 @@ def compile_options(options: dict) -> dict | None:
     """``options`` for ``jax.jit(..., compiler_options=...)`` where the running jaxlib is one
     they were measured on (:data:`MEASURED_JAXLIB`; an XLA that does not know an option rejects
     the program), else ``None``."""
-    return dict(options) if jaxlib.__version__.startswith(MEASURED_JAXLIB) else None
+    return dict(options) if _measured_jaxlib() else None
+
+
+def _measured_jaxlib() -> bool:
+    """Whether the running jaxlib is of :data:`MEASURED_JAXLIB`."""
+    return jaxlib.__version__.startswith(MEASURED_JAXLIB)
