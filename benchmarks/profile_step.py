@@ -28,7 +28,7 @@ import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import jax  # noqa: E402
-from speed import PROBLEMS, RUNS, T, jaxest_case, modes, options, passes  # noqa: E402
+from speed import PROBLEMS, RUNS, T, jaxest_case, modes, passes  # noqa: E402
 
 from jaxest.report import emit_json  # noqa: E402
 
@@ -52,11 +52,12 @@ def operation_times(trace_dir: Path) -> tuple[collections.Counter, collections.C
 
 def profile(problem: str, mode: str, pass_name: str, runs: int, steps: int, top: int) -> dict:
     fn, ys, scales = jaxest_case(problem, runs, steps)
-    wrap, args = next((w, a) for m, w, a, _ in modes(ys, scales) if m == mode)
+    batching = next(m for m in modes(ys, scales) if m.name == mode)
+    args = batching.args
     compiled = (
-        jax.jit(wrap(passes(fn)[pass_name]))
+        jax.jit(batching.wrap(passes(fn)[pass_name]))
         .lower(*args)
-        .compile(options(mode).get("compiler_options"))
+        .compile(batching.compiler_options)
     )
     jax.block_until_ready(compiled(*args))  # warm up
     with tempfile.TemporaryDirectory() as trace_dir:

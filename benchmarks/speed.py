@@ -25,7 +25,9 @@ import importlib.util
 import json
 import math
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -66,13 +68,21 @@ def linear_model(n=4, m=2):
     return model, je.Gaussian(jnp.zeros(n), jnp.eye(n))
 
 
+def scaled_q_run(estimator, model, prior, save=None):
+    """(q_scale, ys) -> (log-likelihood, filtered means) of ``estimator`` on ``model`` with its
+    Q scaled (benchmarks/vmap_minor.py runs every Gaussian filter so)."""
+
+    def run(q_scale, ys):
+        scaled = je.LinearGaussian(model.F, model.H, q_scale * model.Q, model.R)
+        result = je.run(estimator, scaled, ys, prior=prior, save=save)
+        return result.loglik, result.mean
+
+    return run
+
+
 def linear_problem(n=4, m=2):
     model, prior = linear_model(n, m)
-
-    def jaxest_loglik(q_scale, ys):
-        mdl = je.LinearGaussian(model.F, model.H, q_scale * model.Q, model.R)
-        res = je.run(KalmanFilter(), mdl, ys, prior=prior)
-        return res.loglik, res.mean
+    jaxest_loglik = scaled_q_run(KalmanFilter(), model, prior)
 
     from dynamax.linear_gaussian_ssm import LinearGaussianSSM, lgssm_filter
 
@@ -191,37 +201,47 @@ def dynamax_rows(name, build, args):
     if not np.isclose(a, b, rtol=1e-6):  # Joseph vs plain update differ in rounding
         raise RuntimeError(f"{name}: the two libraries disagree ({a} vs {b}): not the same problem")
     rows = []
-    for mode, wrap, call_args, per in modes(ys, scales):
+    for mode in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args, **options(mode))
-            _, t_theirs, _ = timed(reference(mode, wrap)(passes(theirs)[pass_name]), call_args)
-            rows.append(row(name, mode, pass_name, t_ours / per, t_theirs / per, c_ours))
+            c_ours, t_ours, _ = timed(
+                mode.wrap(passes(ours)[pass_name]), mode.args,
+                compiler_options=mode.compiler_options,
+            )  # fmt: skip
+            _, t_theirs, _ = timed(mode.reference_wrap(passes(theirs)[pass_name]), mode.args)
+            rows.append(
+                row(name, mode.name, pass_name, t_ours / mode.steps, t_theirs / mode.steps, c_ours)
+            )
     return rows
 
 
-def modes(ys, scales):
-    """(mode, wrap, call arguments, steps per call): one sequence at scale 1, and every run of
-    ``ys`` (runs, T, m) with its own scale under ``jax.vmap`` and under ``je.vmap_minor``."""
+class Mode(NamedTuple):
+    """How a row runs: ``wrap`` batches jaxest's function, ``reference_wrap`` the reference's,
+    on ``args``, ``steps`` time steps per call; jaxest's program is compiled with
+    ``compiler_options``."""
+
+    name: str
+    wrap: Callable
+    reference_wrap: Callable
+    args: tuple
+    steps: int
+    compiler_options: dict | None = None
+
+
+def modes(ys, scales) -> list[Mode]:
+    """One sequence at scale 1, and every run of ``ys`` (runs, T, m) with its own scale under
+    ``jax.vmap`` and with jaxest under ``je.vmap_minor`` (the reference under ``jax.vmap``).
+    ``vmap_minor``'s compiler options are passed to ``timed``: its jit, which compiles the
+    function here, does not pass on those of a jit nested in it."""
     runs, steps = ys.shape[:2]
+    single = lambda fn: fn
     return [
-        ("single", lambda fn: fn, (jnp.asarray(1.0), ys[0]), steps),
-        ("vmap200", jax.vmap, (scales, ys), steps * runs),
-        ("minor200", je.vmap_minor, (scales, ys), steps * runs),
-    ]
-
-
-def reference(mode, wrap):
-    """How the reference runs a mode: every batched mode under ``jax.vmap``."""
-    return jax.vmap if mode == "minor200" else wrap
-
-
-def options(mode) -> dict:
-    """``timed``'s compiler options for jaxest in a mode: ``vmap_minor``'s own (its function is
-    compiled here as part of ``timed``'s jit, which does not pass on the options of a jit
-    nested in it)."""
-    if mode != "minor200":
-        return {}
-    return {"compiler_options": xla_flags.compile_options(xla_flags.NO_YNN_FUSION)}
+        Mode("single", single, single, (jnp.asarray(1.0), ys[0]), steps),
+        Mode("vmap200", jax.vmap, jax.vmap, (scales, ys), steps * runs),
+        Mode(
+            "minor200", je.vmap_minor, jax.vmap, (scales, ys), steps * runs,
+            xla_flags.compile_options(xla_flags.NO_YNN_FUSION),
+        ),
+    ]  # fmt: skip
 
 
 def smf_rows(args):
@@ -240,10 +260,16 @@ def smf_rows(args):
     }
     t_numpy["minor200"] = t_numpy["vmap200"]
     rows = []
-    for mode, wrap, call_args, per in modes(ys, scales):
+    for mode in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            c_ours, t_ours, _ = timed(wrap(passes(ours)[pass_name]), call_args, **options(mode))
-            rows.append(row("duffing_smf", mode, pass_name, t_ours / per, t_numpy[mode], c_ours))
+            c_ours, t_ours, _ = timed(
+                mode.wrap(passes(ours)[pass_name]), mode.args,
+                compiler_options=mode.compiler_options,
+            )  # fmt: skip
+            per_step = t_ours / mode.steps
+            rows.append(
+                row("duffing_smf", mode.name, pass_name, per_step, t_numpy[mode.name], c_ours)
+            )
             rows[-1]["reference"] = "numpy loop (benchmarks/smf.py), forward only"
     return rows
 

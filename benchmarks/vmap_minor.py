@@ -19,36 +19,24 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
-from speed import RUNS, T, gaussian_data, linear_model  # noqa: E402
+from speed import RUNS, T, gaussian_data, linear_model, modes, scaled_q_run  # noqa: E402
 
 import jaxest as je  # noqa: E402
-from jaxest import xla_flags  # noqa: E402
 from jaxest.report import emit_json, timed  # noqa: E402
 
 FILTERS = [je.KalmanFilter, je.EKF, je.InformationFilter, je.SquareRootKF, je.SVDEKF, je.UKF]
 
 
-def filter_run(estimator, model, prior):
-    """(q_scale, ys) -> (log-likelihood, filtered means) of ``estimator`` with Q scaled."""
-
-    def run(q_scale, ys):
-        scaled = je.LinearGaussian(model.F, model.H, q_scale * model.Q, model.R)
-        result = je.run(estimator, scaled, ys, prior=prior, save=je.SaveAt(fields=("mean",)))
-        return result.loglik, result.mean
-
-    return run
-
-
 def measure(rounds: int) -> list[dict]:
     model, prior = linear_model(6, 3)
     ys, scales = gaussian_data(model, prior, RUNS, T)
-    minor_options = xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
+    by_name = {mode.name: mode for mode in modes(ys, scales)}  # speed.py's batched modes
     rows = []
     for filter_type in FILTERS:
-        run = filter_run(filter_type(), model, prior)
+        run = scaled_q_run(filter_type(), model, prior, save=je.SaveAt(fields=("mean",)))
         batchings = {
-            "vmap": (jax.vmap(run), None),
-            "vmap_minor": (je.vmap_minor(run), minor_options),
+            key: (by_name[mode].wrap(run), by_name[mode].compiler_options)
+            for key, mode in (("vmap", "vmap200"), ("vmap_minor", "minor200"))
         }
         times = {name: [] for name in batchings}
         compile_s, outputs = {}, {}
