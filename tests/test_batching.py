@@ -68,22 +68,23 @@ def scaled_Q(model, scale):
     return je.LinearGaussian(model.F, model.H, scale * model.Q, model.R)
 
 
+def kalman_loglik(model, prior):
+    """(Q scale, one run's measurements) -> the Kalman filter's log-likelihood."""
+    return lambda scale, y: je.run(je.KalmanFilter(), scaled_Q(model, scale), y, prior=prior).loglik
+
+
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_value_and_grad_inside_matches_vmap(dtype):
     """Differentiated inside: the Kalman filter's closed-form gradient rule already applied."""
     model, prior, ys, scales = linear_case(dtype)
-    loglik = lambda scale, y: (
-        je.run(je.KalmanFilter(), scaled_Q(model, scale), y, prior=prior).loglik
-    )
+    loglik = kalman_loglik(model, prior)
     value_and_grad = jax.value_and_grad(loglik)
     close(vmap_minor(value_and_grad)(scales, ys), jax.vmap(value_and_grad)(scales, ys), dtype)
 
 
 def test_gradient_taken_outside_is_autodiff_of_the_primal():
     model, prior, ys, scales = linear_case(jnp.float64)
-    loglik = lambda scale, y: (
-        je.run(je.KalmanFilter(), scaled_Q(model, scale), y, prior=prior).loglik
-    )
+    loglik = kalman_loglik(model, prior)
     total = lambda batched: lambda s: jnp.sum(batched(loglik)(s, ys))
     close(jax.grad(total(vmap_minor))(scales), jax.grad(total(jax.vmap))(scales), jnp.float64)
 
@@ -115,9 +116,7 @@ def test_particle_filter_with_keys_matches_vmap():
 def test_kalman_filter_runs_batch_minor_throughout():
     """Every primitive of the Kalman filter and its gradient has a batch-minor rule."""
     model, prior, ys, scales = linear_case(jnp.float64)
-    loglik = lambda scale, y: (
-        je.run(je.KalmanFilter(), scaled_Q(model, scale), y, prior=prior).loglik
-    )
+    loglik = kalman_loglik(model, prior)
     assert vmap_minor_fallbacks(loglik, scales, ys) == {}
     assert vmap_minor_fallbacks(jax.value_and_grad(loglik), scales, ys) == {}
 
