@@ -114,11 +114,14 @@ def test_particle_filter_with_keys_matches_vmap():
 
 
 def test_kalman_filter_runs_batch_minor_throughout():
-    """Every primitive of the Kalman filter and its gradient has a batch-minor rule."""
+    """Every primitive of the Kalman filter and its gradient has a batch-minor rule, and the
+    covariances the program carries have the runs last."""
     model, prior, ys, scales = linear_case(jnp.float64)
     loglik = kalman_loglik(model, prior)
     assert vmap_minor_fallbacks(loglik, scales, ys) == {}
     assert vmap_minor_fallbacks(jax.value_and_grad(loglik), scales, ys) == {}
+    program = jax.jit(vmap_minor(loglik)).lower(scales, ys).as_text()
+    assert f"3x3x{RUNS}xf64" in program and f"{RUNS}x3x3xf64" not in program
 
 
 def test_a_large_product_is_a_batched_dot():
