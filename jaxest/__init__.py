@@ -22,7 +22,7 @@ from jaxest._status import (
     status_where as status_where,
 )
 from jaxest.batching import vmap_minor as vmap_minor, vmap_minor_fallbacks as vmap_minor_fallbacks
-from jaxest.em import EMResult as EMResult, fit_em as fit_em
+from jaxest.em import EMResult as EMResult, EMStatus as EMStatus, fit_em as fit_em
 from jaxest.filters import (
     EKF as EKF,
     SVDEKF as SVDEKF,
@@ -108,8 +108,8 @@ __all__ = [
     "AbstractGaussianFilter", "AbstractGaussianModel", "AbstractProposal", "AbstractResult",
     "AbstractSVDFilter", "AbstractSigmaPointFilter", "AdaptiveObserver", "CholeskyFactor",
     "ContinuousLTV", "Covariance", "CubatureKF", "DiscreteAdaptiveObserver", "DiscreteLTV", "EKF",
-    "EMResult", "FilterResult", "GaussHermiteKF", "Gaussian", "GaussianState", "ImprovedSVDKF",
-    "InformationFilter", "InformationMatrix", "InputEffectiveness", "IteratedEKF",
+    "EMResult", "EMStatus", "FilterResult", "GaussHermiteKF", "Gaussian", "GaussianState",
+    "ImprovedSVDKF", "InformationFilter", "InformationMatrix", "InputEffectiveness", "IteratedEKF",
     "IteratedSmootherResult", "KalmanFilter", "LinearGaussian", "NonlinearGaussian",
     "ObserverPrior", "ObserverStatus", "ParallelFilterResult", "ParallelKalmanFilter",
     "ParallelStatus", "ParticleFilter", "ParticleResult", "ParticleStatus", "RiccatiSolution",

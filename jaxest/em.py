@@ -20,15 +20,24 @@ Sigma held over W_a alone (its minimiser is Sigma-free). The prior: m0 = x(0|T),
 P0 = P(0|T) + (x(0|T) - m0)(x(0|T) - m0)^T. Every step is a maximisation of the expected
 complete-data log-likelihood over some parameters with the others held, so the log-likelihood
 does not decrease from one iteration to the next (Dempster, Laird & Rubin 1977, Theorem 1).
+
+Status. Each iteration's flags (:data:`EMStatus`, ``EMResult.status``) gather what can go wrong
+under ``jit`` without an exception: the E-step filter's and smoother's own flags, a fitted Q, R
+or P0 that is not positive definite (``DEGENERATE_COVARIANCE``: with too few steps for the
+parameters fitted, (2)'s Sigma is singular, and the next E-step turns it into NaN), and a
+log-likelihood below the previous iteration's by more than sqrt(eps) of their size
+(``LOGLIK_DECREASED``), which the theorem rules out in exact arithmetic.
 """
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxest._checks import (
     check_complete,
@@ -37,10 +46,17 @@ from jaxest._checks import (
     check_positive_int,
 )
 from jaxest._priors import Gaussian
-from jaxest._run import run
+from jaxest._run import raise_if_failed, run
+from jaxest._status import finite_status, status_where
 from jaxest.filters.kalman import KalmanFilter
-from jaxest.filters.parallel import ParallelKalmanFilter
-from jaxest.linalg import cho_solve_lower, cholesky, symmetrize, working_precision_by_default
+from jaxest.filters.parallel import ParallelKalmanFilter, ParallelStatus
+from jaxest.linalg import (
+    after,
+    cho_solve_lower,
+    cholesky,
+    symmetrize,
+    working_precision_by_default,
+)
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.rts import SmootherResult, rts_smooth
 
@@ -48,21 +64,59 @@ from jaxest.smoothers.rts import SmootherResult, rts_smooth
 PARAMETERS = ("F", "B", "Q", "H", "D", "R", "prior.mean", "prior.cov")
 
 
+EMStatus = ParallelStatus.extend(
+    "EMStatus",
+    DEGENERATE_COVARIANCE=(
+        8,
+        "a fitted covariance (Q, R or the prior's P0) is not positive definite or not finite: "
+        "the data do not determine it (too few steps for the parameters fitted, or a state the "
+        "measurements do not see); hold it in fixed, fit fewer parameters or give more data",
+    ),
+    LOGLIK_DECREASED=(
+        16,
+        "the log-likelihood fell from one EM iteration to the next by more than sqrt(eps) of "
+        "its size, which EM rules out in exact arithmetic: the E-step lost precision (use "
+        "float64) or a fitted covariance is nearly singular (see DEGENERATE_COVARIANCE)",
+    ),
+)
+"""``fit_em``'s status flags: the E-step filter's and smoother's (the core's and the parallel
+filter's) and EM's own (module docstring)."""
+
+
 class EMResult(eqx.Module):
-    """The fitted model and prior, and ``logliks[i]``: log p(y) before the i-th M-step."""
+    """The fitted model and prior; ``logliks[i]``: log p(y) before the i-th M-step;
+    ``status[i]``: the :data:`EMStatus` flags of iteration i, from its E-step (the filter and
+    smoother at the parameters of ``logliks[i]``), from the parameters its M-step fitted, and
+    ``LOGLIK_DECREASED`` where ``logliks[i]`` fell below ``logliks[i - 1]``."""
+
+    #: the status flags of fit_em (``throw=True`` and ``describe`` use them)
+    flags: ClassVar = EMStatus
 
     model: LinearGaussian
     prior: Gaussian
     logliks: Float[Array, " num_iters"]
+    status: Int[Array, " num_iters"]
+
+    @property
+    def any_status(self) -> Int[Array, ""]:
+        """The flags of every iteration, OR'ed."""
+        return jnp.bitwise_or.reduce(self.status, axis=-1)
+
+    @property
+    def ok(self) -> jax.Array:
+        """True where every iteration finished with status OK."""
+        return self.any_status == 0
 
 
 class Moments(eqx.Module):
-    """Smoothed x(k|T), P(k|T), the lag-one cross covariances P(k+1,k|T), and log p(y)."""
+    """Smoothed x(k|T), P(k|T), the lag-one cross covariances P(k+1,k|T), log p(y), and the
+    filter's and smoother's flags OR'ed over the steps."""
 
     mean: Float[Array, "T n"]
     cov: Float[Array, "T n n"]
     cross: Float[Array, "T-1 n n"]
     loglik: Float[Array, ""]
+    status: Int[Array, ""]
 
 
 def kalman_smooth(
@@ -80,7 +134,8 @@ def kalman_smooth(
 def e_step(model, prior, ys, inputs, parallel: bool) -> Moments:
     """Filter and RTS-smooth at the current parameters (in parallel form if ``parallel``)."""
     smoothed, loglik = kalman_smooth(model, ys, prior=prior, inputs=inputs, parallel=parallel)
-    return Moments(smoothed.mean, smoothed.cov, smoothed.cross_cov, loglik)
+    status = jnp.bitwise_or.reduce(smoothed.status, axis=-1)  # the filter's included
+    return Moments(smoothed.mean, smoothed.cov, smoothed.cross_cov, loglik, status)
 
 
 def regression_stats(mo: Moments, ys, inputs):
@@ -145,15 +200,42 @@ def m_step(model: LinearGaussian, prior: Gaussian, mo: Moments, ys, inputs, fixe
     return model, Gaussian(mean, cov)
 
 
+def fitted_status(model: LinearGaussian, prior: Gaussian, fixed: frozenset) -> Int[Array, ""]:
+    """``NONFINITE`` where a parameter is not finite, ``DEGENERATE_COVARIANCE`` where a fitted
+    covariance (Q, R, P0; those held in ``fixed`` are the caller's) has no Cholesky factor.
+    The factorisations run one after the other (:func:`~jaxest.linalg.after`: above 8 states
+    they are LAPACK calls, and two at once can deadlock jaxlib 0.10 on the CPU)."""
+    fitted = {"Q": model.Q, "R": model.R, "prior.cov": prior.cov}
+    factors = []
+    for name, cov in fitted.items():
+        if name not in fixed:
+            factors.append(cholesky(after(cov, factors)))
+    degenerate = bool(factors) and finite_status(*factors) != 0
+    return finite_status(*jax.tree.leaves((model, prior))) | status_where(
+        degenerate, EMStatus.DEGENERATE_COVARIANCE
+    )
+
+
+def decrease_status(logliks: Float[Array, " num_iters"]) -> Int[Array, " num_iters"]:
+    """``LOGLIK_DECREASED`` at each i where logliks[i] < logliks[i - 1] by more than sqrt(eps)
+    of |logliks[i]| + |logliks[i - 1]| + 1."""
+    before, after = logliks[:-1], logliks[1:]
+    tolerance = jnp.sqrt(jnp.finfo(logliks.dtype).eps) * (jnp.abs(before) + jnp.abs(after) + 1)
+    fell = jnp.concatenate([jnp.zeros(1, bool), before - after > tolerance])
+    return status_where(fell, EMStatus.LOGLIK_DECREASED)
+
+
 @eqx.filter_jit
 def _fit_em(model, prior, ys, inputs, num_iters: int, fixed: frozenset, parallel: bool):
     def body(carry, _):
         model, prior = carry
         moments = e_step(model, prior, ys, inputs, parallel)
-        return m_step(model, prior, moments, ys, inputs, fixed), moments.loglik
+        model, prior = m_step(model, prior, moments, ys, inputs, fixed)
+        status = moments.status | fitted_status(model, prior, fixed)
+        return (model, prior), (moments.loglik, status)
 
-    (model, prior), logliks = jax.lax.scan(body, (model, prior), None, length=num_iters)
-    return EMResult(model, prior, logliks)
+    (model, prior), (logliks, status) = jax.lax.scan(body, (model, prior), None, length=num_iters)
+    return EMResult(model, prior, logliks, status | decrease_status(logliks))
 
 
 @working_precision_by_default
@@ -166,6 +248,7 @@ def fit_em(
     fixed=(),
     inputs=None,
     parallel: bool = False,
+    throw: bool = False,
 ) -> EMResult:
     """Fit F, B, Q, H, D, R and the prior of a linear-Gaussian model by EM (module docstring).
 
@@ -178,14 +261,18 @@ def fit_em(
         fixed: names from :data:`PARAMETERS` held at their initial values.
         inputs: known inputs u_k, shape (T, p), or ``None``.
         parallel: E-step by the parallel filter and smoother instead of the sequential ones.
+        throw: raise (``eqx.error_if``, also under ``jit``) if an iteration's status is not
+            OK, with what each flag means.
 
     Returns an :class:`EMResult`; ``logliks[i]`` is log p(y) before the i-th M-step (as
-    dynamax's ``fit_em`` reports it), non-decreasing in i.
+    dynamax's ``fit_em`` reports it), non-decreasing in i; ``status[i]`` the iteration's
+    :data:`EMStatus` flags (``result.ok``: all OK).
     """
     _check(model, ys, prior, num_iters, fixed, inputs)
     ys = jnp.asarray(ys)
     inputs = None if inputs is None else jnp.asarray(inputs)
-    return _fit_em(model, prior, ys, inputs, num_iters, frozenset(fixed), parallel)
+    result = _fit_em(model, prior, ys, inputs, num_iters, frozenset(fixed), parallel)
+    return raise_if_failed(result) if throw else result
 
 
 def _check(model, ys, prior, num_iters, fixed, inputs):
@@ -213,4 +300,4 @@ def _check(model, ys, prior, num_iters, fixed, inputs):
         )
 
 
-__all__ = ["EMResult", "fit_em"]
+__all__ = ["EMResult", "EMStatus", "fit_em"]

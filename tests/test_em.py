@@ -47,6 +47,7 @@ def test_matches_dynamax_fit_em(parallel):
     )  # fmt: skip
     fitted, logliks = lgssm.fit_em(params, props, ys, num_iters=12, verbose=False)
     np.testing.assert_allclose(ours.logliks, logliks, rtol=1e-6)
+    assert bool(ours.ok), je.EMStatus.describe(ours.any_status)
     for mine, theirs in [(ours.model.F, fitted.dynamics.weights), (ours.model.Q, fitted.dynamics.cov),
                          (ours.model.H, fitted.emissions.weights), (ours.model.R, fitted.emissions.cov),
                          (ours.prior.mean, fitted.initial.mean), (ours.prior.cov, fitted.initial.cov)]:  # fmt: skip
@@ -62,6 +63,7 @@ def test_loglik_is_monotone_with_inputs_and_held_parameters(fixed):
     logliks = np.asarray(res.logliks)
     assert np.all(np.diff(logliks) >= -1e-9 * np.abs(logliks[1:]))
     assert logliks[-1] > logliks[0] + 1.0
+    assert bool(res.ok), je.EMStatus.describe(res.any_status)
     fitted = {"F": res.model.F, "B": res.model.B, "Q": res.model.Q, "H": res.model.H,
               "D": res.model.D, "R": res.model.R, "prior.mean": res.prior.mean,
               "prior.cov": res.prior.cov}  # fmt: skip
@@ -104,6 +106,64 @@ def test_recovers_invariants_of_a_four_state_model():
     markov_fit, S_fit = markov_parameters(res.model)
     assert np.max(np.abs(markov_fit - markov_true)) < 0.25 * np.max(np.abs(markov_true))
     np.testing.assert_allclose(S_fit, S_true, atol=0.1 * np.max(np.abs(S_true)))
+
+
+def degenerate_problem(seed):
+    """Two steps with an input: (2)'s dynamics regression has one sample for three regressors,
+    so the fitted Q is singular and the next E-step's filter produces NaN."""
+    rng = np.random.default_rng(seed)
+    model = je.LinearGaussian(0.9 * jnp.eye(2), jnp.eye(2), jnp.eye(2), jnp.eye(2),
+                              B=jnp.zeros((2, 1)), D=jnp.zeros((2, 1)))  # fmt: skip
+    ys, inputs = (jnp.asarray(rng.normal(size=(2, k))) for k in (2, 1))
+    return model, je.Gaussian(jnp.zeros(2), jnp.eye(2)), ys, inputs
+
+
+def test_a_degenerate_fit_is_flagged_not_silent():
+    """It used to return NaN parameters and log-likelihoods with nothing to say so."""
+    model, prior, ys, inputs = degenerate_problem(0)
+    res = je.fit_em(model, ys, prior=prior, num_iters=3, inputs=inputs)
+    assert np.isnan(res.logliks[1]) and np.all(np.isnan(res.model.Q))
+    flags = je.EMStatus
+    assert int(res.status[0]) == flags.DEGENERATE_COVARIANCE  # the first M-step's Q
+    # the E-step's filter on that Q (only the filter raises NOT_POSITIVE_DEFINITE), then NaN
+    assert int(res.status[1]) & flags.NOT_POSITIVE_DEFINITE
+    assert all(int(s) & flags.NONFINITE for s in res.status[1:])
+    assert not bool(res.ok)
+    with pytest.raises(Exception, match="DEGENERATE_COVARIANCE: a fitted covariance"):
+        je.fit_em(model, ys, prior=prior, num_iters=3, inputs=inputs, throw=True)
+    # with the regressions held, R (two samples of two outputs plus H P(k|T) H^T) is PD
+    held = je.fit_em(model, ys, prior=prior, num_iters=3, inputs=inputs,
+                     fixed=("F", "B", "Q", "H", "D", "prior.cov"))  # fmt: skip
+    assert bool(held.ok), flags.describe(held.any_status)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_status_under_jit_and_vmap(dtype):
+    """A batch of a sound and a degenerate fit under ``jit(vmap(...))``: each run keeps its
+    own flags, and the sound run's results equal its fit alone."""
+    _, ys, _, init, init_prior = system(0, 2, 2, 40)
+    cast = lambda tree: jax.tree.map(lambda a: a.astype(dtype), tree)
+    init, init_prior, ys = cast(init), cast(init_prior), ys.astype(dtype)
+    # the second run: every measurement equal, so the fitted R collapses to 0
+    batch = jnp.stack([ys, jnp.ones_like(ys)])
+    fits = jax.jit(jax.vmap(lambda y: je.fit_em(init, y, prior=init_prior, num_iters=4)))(batch)
+    alone = je.fit_em(init, ys, prior=init_prior, num_iters=4)
+    assert fits.status.shape == (2, 4) and fits.status.dtype == jnp.int32
+    np.testing.assert_allclose(
+        fits.logliks[0], alone.logliks, rtol=1e-5 if dtype == jnp.float32 else 1e-12
+    )
+    np.testing.assert_array_equal(fits.status[0], alone.status)
+    assert bool(fits.ok[0]) and not bool(fits.ok[1])
+
+
+def test_a_fall_of_the_loglik_is_flagged_beyond_rounding_only():
+    for dtype in (jnp.float64, jnp.float32):
+        # a tenth of the tolerance sqrt(eps) (|l_i| + |l_i-1| + 1), well above the spacing
+        small = 0.1 * float(jnp.sqrt(jnp.finfo(dtype).eps)) * 191
+        logliks = jnp.asarray([-100.0, -90.0, -95.0, -95.0 - small, -94.0], dtype)
+        assert logliks[3] < logliks[2]
+        status = je.em.decrease_status(logliks)
+        assert status.tolist() == [0, 0, je.EMStatus.LOGLIK_DECREASED, 0, 0]
 
 
 def test_errors_name_the_argument():
