@@ -289,7 +289,7 @@ def em_versus_gradient(T: int, em_iters: int, grad_steps: int, seed: int) -> dic
         "T": T,
         "truth_loglik": truth_loglik,
         "em": {"iterations": em_iters, "wall_s": em_s, "loglik": em_loglik,
-               "monotone": bool(np.all(np.diff(np.asarray(em.logliks)) >= -1e-9 * abs(em_loglik)))},
+               "status": je.EMStatus.describe(em.any_status)},
         "gradient": {"iterations": grad_steps, "wall_s": grad_s, "loglik": grad_loglik,
                      "finite": bool(np.all(np.isfinite(np.asarray(losses))))},
         "invariants": rows,
