@@ -219,9 +219,9 @@ def fitted_status(model: LinearGaussian, prior: Gaussian, fixed: frozenset) -> I
 def decrease_status(logliks: Float[Array, " num_iters"]) -> Int[Array, " num_iters"]:
     """``LOGLIK_DECREASED`` at each i where logliks[i] < logliks[i - 1] by more than sqrt(eps)
     of |logliks[i]| + |logliks[i - 1]| + 1."""
-    before, after = logliks[:-1], logliks[1:]
-    tolerance = jnp.sqrt(jnp.finfo(logliks.dtype).eps) * (jnp.abs(before) + jnp.abs(after) + 1)
-    fell = jnp.concatenate([jnp.zeros(1, bool), before - after > tolerance])
+    earlier, later = logliks[:-1], logliks[1:]
+    tolerance = jnp.sqrt(jnp.finfo(logliks.dtype).eps) * (jnp.abs(earlier) + jnp.abs(later) + 1)
+    fell = jnp.concatenate([jnp.zeros(1, bool), earlier - later > tolerance])
     return status_where(fell, EMStatus.LOGLIK_DECREASED)
 
 
