@@ -24,6 +24,7 @@ import argparse
 import time
 
 import jax
+from jax.extend import core as jex_core
 from speed import PROBLEMS, jaxest_case, modes, passes
 
 from jaxest.report import emit_json
@@ -37,7 +38,7 @@ def equations(jaxpr) -> int:
         for value in eqn.params.values():
             for inner in value if isinstance(value, tuple | list) else (value,):
                 inner = getattr(inner, "jaxpr", inner)  # a ClosedJaxpr's own
-                if isinstance(inner, jax.extend.core.Jaxpr):
+                if isinstance(inner, jex_core.Jaxpr):
                     count += equations(inner)
     return count
 
