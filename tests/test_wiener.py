@@ -163,9 +163,10 @@ def test_steady_state_filter_matches_kalman_filter_from_sigma():
 
 
 def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
-    """An undetectable (F, H) raises naming F and H; under jit its Sigma is NaN (the filter's
-    and the steady-state smoother's status then say NONFINITE). Unobservable modes outside the unit circle need no
-    detectability: F = 2, H = 1, Q = 0 gives Sigma = 3, where the Kalman filter converges."""
+    """An undetectable (F, H) raises naming F and H; under jit its Sigma is NaN, its status
+    NOT_STABILISING (the filter's and the steady-state smoother's status then say NONFINITE).
+    Unobservable modes outside the unit circle need no detectability: F = 2, H = 1, Q = 0 gives
+    Sigma = 3, where the Kalman filter converges."""
     with enable_x64(True):
         undetectable = je.LinearGaussian(
             F=jnp.diag(jnp.array([2.0, 0.5])), H=jnp.array([[0.0, 1.0]]), Q=jnp.eye(2), R=jnp.eye(1)
@@ -174,6 +175,8 @@ def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
             steady_state_gain(undetectable)
         gain = jax.jit(steady_state_gain)(undetectable)
         assert not np.any(np.isfinite(gain.Sigma))
+        # and the gain says why (it used to hold the NaN alone)
+        assert int(gain.status) & je.RiccatiStatus.NOT_STABILISING and not bool(gain.ok)
         ys = jnp.zeros((5, 1))
         filtered = jax.jit(
             lambda model: je.run(
@@ -188,6 +191,7 @@ def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
         )
         for gain in (steady_state_gain(scalar), jax.jit(steady_state_gain)(scalar)):
             np.testing.assert_allclose(gain.Sigma, [[3.0]], rtol=1e-14)
+            assert bool(gain.ok)
         # the Kalman filter from any prior converges to it: P(t|t-1) = 4 P / (1 + P) -> 3
         P = 10.0
         for _ in range(60):
@@ -466,7 +470,7 @@ def test_eq13_with_a_repeated_far_eigenvalue():
     with enable_x64(True):
         Phi = jnp.array([[0.2, 1.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.9]])
         gain = SteadyStateGain(
-            Phi, jnp.zeros((1, 3)), jnp.eye(3), jnp.zeros((3, 1)), jnp.eye(1)
+            Phi, jnp.zeros((1, 3)), jnp.eye(3), jnp.zeros((3, 1)), jnp.eye(1), jnp.zeros((), int)
         )  # Psi_f = Phi
         smoother = WienerSmoother(paper_model(), gain, arma_innovation_model(gain))
         rng = np.random.default_rng(1)

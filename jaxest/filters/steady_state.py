@@ -13,10 +13,12 @@ The steady-state smoothers built on them are in :mod:`jaxest.smoothers.steady_st
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_complete, check_gaussian_prior
 from jaxest._priors import Gaussian
@@ -30,17 +32,29 @@ from jaxest.filters.base import (
 from jaxest.filters.common import gaussian_loglik
 from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.models import LinearGaussian
-from jaxest.riccati import solve_filter_dare
+from jaxest.riccati import RiccatiStatus, solve_filter_dare
 
 
 class SteadyStateGain(eqx.Module):
-    """Lemma 1: the steady state of the Kalman filter of a time-invariant linear model."""
+    """Lemma 1: the steady state of the Kalman filter of a time-invariant linear model, and the
+    :class:`~jaxest.RiccatiStatus` of the Riccati solution it comes from (NaN Sigma, K and
+    Q_eps where that is not OK, which only happens under ``jit``: outside it
+    :func:`steady_state_gain` raises)."""
+
+    #: the status flags of the Riccati solution
+    flags: ClassVar = RiccatiStatus
 
     Phi: Float[Array, "n n"]
     H: Float[Array, "m n"]
     Sigma: Float[Array, "n n"]  #: steady-state prediction covariance P(t|t-1), eq 5
     K: Float[Array, "n m"]  #: filter gain, eq 4
     innovation_cov: Float[Array, "m m"]  #: Q_eps = H Sigma H^T + R
+    status: Int[Array, ""]  #: the Riccati solution's status bits (0 = OK)
+
+    @property
+    def ok(self) -> jax.Array:
+        """True where the Riccati solution's status is OK."""
+        return self.status == 0
 
     @property
     def Psi_f(self) -> Float[Array, "n n"]:
@@ -84,7 +98,8 @@ def check_time_invariant(model) -> None:
 def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
     """Sigma from the filter Riccati equation (eq 5), ``solve_filter_dare(Phi, H, Gamma Q
     Gamma^T, R)``, then K (eq 4) and Q_eps. Concrete (F, H) without a stabilising solution raise
-    a ``ValueError`` naming them; under ``jit`` a solution whose status is not OK gives NaN."""
+    a ``ValueError`` naming them; under ``jit`` a solution whose status is not OK gives NaN, and
+    the gain's ``status`` says why (``ok``: it is OK)."""
     check_time_invariant(model)
     solution = solve_filter_dare(model.F, model.H, _state_noise_cov(model), model.R)
     return _gain(model.F, model.H, model.R, solution)
@@ -104,7 +119,7 @@ def _gain(Phi, H, R, solution) -> SteadyStateGain:
     Sigma = jnp.where(solution.ok, solution.X, jnp.nan)
     Qe = symmetrize(H @ Sigma @ H.T + R)
     K = jnp.linalg.solve(Qe, H @ Sigma).T
-    return SteadyStateGain(Phi, H, Sigma, K, Qe)
+    return SteadyStateGain(Phi, H, Sigma, K, Qe, solution.status)
 
 
 class SteadyStateFactor(AbstractCovarianceFactor):
