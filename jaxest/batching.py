@@ -64,6 +64,9 @@ SAME_PARAMETERS = frozenset(
     """argmax argmin cumlogsumexp cummax cummin cumprod cumsum reduce_and reduce_max reduce_min
     reduce_or reduce_prod reduce_sum reduce_xor rev squeeze split unstack""".split()
 )
+#: what :func:`vmap_minor` compiles its program with at top level (``None`` on a jaxlib the
+#: option was not measured on); a caller compiling it inside its own ``jit`` passes these
+COMPILER_OPTIONS = xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
 
 
 def vmap_minor(fn: Callable, in_axes=0) -> Callable:
@@ -95,9 +98,7 @@ def vmap_minor(fn: Callable, in_axes=0) -> Callable:
         ]
         return jax.tree.unflatten(traced.out_tree, outs)
 
-    compiled = jit_with_options_at_top_level(
-        jax.jit, batched, xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
-    )
+    compiled = jit_with_options_at_top_level(jax.jit, batched, COMPILER_OPTIONS)
 
     @functools.wraps(fn)
     def call(*args):
@@ -255,8 +256,16 @@ def _minor(x, size):
     return lax.broadcast_in_dim(x, (*x.shape, size), tuple(range(x.ndim)))
 
 
+def _batched_where_wanted(values, batched, wanted, size):
+    """``values``, those unbatched where ``wanted`` holds given the batch axis (:func:`_minor`)."""
+    return [
+        _minor(v, size) if want and not b else v
+        for v, b, want in zip(values, batched, wanted, strict=True)
+    ]
+
+
 def _all_minor(values, batched, size):
-    return [v if b else _minor(v, size) for v, b in zip(values, batched, strict=True)]
+    return _batched_where_wanted(values, batched, [True] * len(values), size)
 
 
 def _fallback(eqn, values, batched, size, fallbacks):
@@ -452,10 +461,7 @@ def _cond(eqn, values, batched, size, fallbacks):
             outs, flags = evaluate(
                 branch.jaxpr, branch.consts, list(args), operand_batched, size, fallbacks
             )
-            return [
-                _minor(o, size) if want and not b else o
-                for o, want, b in zip(outs, out_batched, flags, strict=True)
-            ]
+            return _batched_where_wanted(outs, flags, out_batched, size)
 
         return run
 
@@ -492,10 +498,7 @@ def _scan(eqn, values, batched, size, fallbacks):
         if settled == carry_b:
             break
         carry_b = settled
-    init = [
-        _minor(v, size) if b and not ib else v
-        for v, b, ib in zip(init, carry_b, init_b, strict=True)
-    ]
+    init = _batched_where_wanted(init, init_b, carry_b, size)
 
     def step(carry, x):
         outs, out_b = evaluate(
@@ -506,10 +509,7 @@ def _scan(eqn, values, batched, size, fallbacks):
             size,
             fallbacks,
         )
-        carry = [
-            _minor(v, size) if b and not ob else v
-            for v, b, ob in zip(outs[:n_carry], carry_b, out_b[:n_carry], strict=True)
-        ]
+        carry = _batched_where_wanted(outs[:n_carry], out_b[:n_carry], carry_b, size)
         return carry, outs[n_carry:]
 
     carry, ys = lax.scan(

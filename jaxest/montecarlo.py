@@ -28,9 +28,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxest import xla_flags
 from jaxest._checks import check_positive_int, is_concrete
-from jaxest.batching import jit_with_options_at_top_level, vmap_minor
+from jaxest.batching import COMPILER_OPTIONS, jit_with_options_at_top_level, vmap_minor
 
 RUNS_AXIS = "runs"
 
@@ -129,9 +128,7 @@ def _all_chunks(run_fn: Callable, raw_keys, typed: bool, *, batch: Callable):
 _BATCHINGS = {
     "vmap": eqx.filter_jit(functools.partial(_all_chunks, batch=jax.vmap)),
     "minor": jit_with_options_at_top_level(
-        eqx.filter_jit,
-        functools.partial(_all_chunks, batch=vmap_minor),
-        xla_flags.compile_options(xla_flags.NO_YNN_FUSION),
+        eqx.filter_jit, functools.partial(_all_chunks, batch=vmap_minor), COMPILER_OPTIONS
     ),
 }
 
