@@ -36,7 +36,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import jaxest as je  # noqa: E402
-from jaxest import xla_flags  # noqa: E402
+from jaxest import batching  # noqa: E402
 from jaxest.filters import KalmanFilter  # noqa: E402
 from jaxest.linalg import cholesky, logdet_chol  # noqa: E402
 from jaxest.report import emit_json, timed  # noqa: E402
@@ -203,10 +203,7 @@ def dynamax_rows(name, build, args):
     rows = []
     for mode in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            c_ours, t_ours, _ = timed(
-                mode.wrap(passes(ours)[pass_name]), mode.args,
-                compiler_options=mode.compiler_options,
-            )  # fmt: skip
+            c_ours, t_ours, _ = mode.timed(passes(ours)[pass_name])
             _, t_theirs, _ = timed(mode.reference_wrap(passes(theirs)[pass_name]), mode.args)
             rows.append(
                 row(name, mode.name, pass_name, t_ours / mode.steps, t_theirs / mode.steps, c_ours)
@@ -226,6 +223,11 @@ class Mode(NamedTuple):
     steps: int
     compiler_options: dict | None = None
 
+    def timed(self, fn, repeats: int = 5):
+        """:func:`jaxest.report.timed` of jaxest's ``fn`` batched and compiled as this mode
+        runs it."""
+        return timed(self.wrap(fn), self.args, repeats, self.compiler_options)
+
 
 def modes(ys, scales) -> list[Mode]:
     """One sequence at scale 1, and every run of ``ys`` (runs, T, m) with its own scale under
@@ -239,7 +241,7 @@ def modes(ys, scales) -> list[Mode]:
         Mode("vmap200", jax.vmap, jax.vmap, (scales, ys), steps * runs),
         Mode(
             "minor200", je.vmap_minor, jax.vmap, (scales, ys), steps * runs,
-            xla_flags.compile_options(xla_flags.NO_YNN_FUSION),
+            batching.COMPILER_OPTIONS,
         ),
     ]  # fmt: skip
 
@@ -262,10 +264,7 @@ def smf_rows(args):
     rows = []
     for mode in modes(ys, scales):
         for pass_name in ("forward", "value_and_grad"):
-            c_ours, t_ours, _ = timed(
-                mode.wrap(passes(ours)[pass_name]), mode.args,
-                compiler_options=mode.compiler_options,
-            )  # fmt: skip
+            c_ours, t_ours, _ = mode.timed(passes(ours)[pass_name])
             per_step = t_ours / mode.steps
             rows.append(
                 row("duffing_smf", mode.name, pass_name, per_step, t_numpy[mode.name], c_ours)

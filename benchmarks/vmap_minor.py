@@ -22,7 +22,7 @@ import jax.numpy as jnp  # noqa: E402
 from speed import RUNS, T, gaussian_data, linear_model, modes, scaled_q_run  # noqa: E402
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json, timed  # noqa: E402
+from jaxest.report import emit_json  # noqa: E402
 
 FILTERS = [je.KalmanFilter, je.EKF, je.InformationFilter, je.SquareRootKF, je.SVDEKF, je.UKF]
 
@@ -31,18 +31,15 @@ def measure(rounds: int) -> list[dict]:
     model, prior = linear_model(6, 3)
     ys, scales = gaussian_data(model, prior, RUNS, T)
     by_name = {mode.name: mode for mode in modes(ys, scales)}  # speed.py's batched modes
+    batchings = {"vmap": by_name["vmap200"], "vmap_minor": by_name["minor200"]}
     rows = []
     for filter_type in FILTERS:
         run = scaled_q_run(filter_type(), model, prior, save=je.SaveAt(fields=("mean",)))
-        batchings = {
-            key: (by_name[mode].wrap(run), by_name[mode].compiler_options)
-            for key, mode in (("vmap", "vmap200"), ("vmap_minor", "minor200"))
-        }
         times = {name: [] for name in batchings}
         compile_s, outputs = {}, {}
         for _ in range(rounds):
-            for name, (batched, options) in batchings.items():
-                compiling, seconds, outputs[name] = timed(batched, (scales, ys), 3, options)
+            for name, mode in batchings.items():
+                compiling, seconds, outputs[name] = mode.timed(run, repeats=3)
                 compile_s.setdefault(name, compiling)
                 times[name].append(seconds / (RUNS * T) * 1e6)
         a, b = outputs["vmap"][0], outputs["vmap_minor"][0]
