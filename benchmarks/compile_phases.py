@@ -24,23 +24,15 @@ import argparse
 import time
 
 import jax
-from jax.extend import core as jex_core
 from speed import PROBLEMS, jaxest_case, modes, passes
 
+from jaxest._jaxpr import inner_jaxprs
 from jaxest.report import emit_json
 
 
 def equations(jaxpr) -> int:
     """Equations of ``jaxpr`` and of every jaxpr in their parameters, recursively."""
-    count = 0
-    for eqn in jaxpr.eqns:
-        count += 1
-        for value in eqn.params.values():
-            for inner in value if isinstance(value, tuple | list) else (value,):
-                inner = getattr(inner, "jaxpr", inner)  # a ClosedJaxpr's own
-                if isinstance(inner, jex_core.Jaxpr):
-                    count += equations(inner)
-    return count
+    return sum(1 + sum(map(equations, inner_jaxprs(eqn))) for eqn in jaxpr.eqns)
 
 
 def phases(fn, args, compiler_options, repeats: int) -> dict:

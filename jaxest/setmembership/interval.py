@@ -31,6 +31,8 @@ from jax import lax
 from jax.extend import core as jex
 from jaxtyping import Array, Float
 
+from jaxest._jaxpr import inner_jaxprs
+
 #: outward widening (in ulps) of library functions that are not correctly rounded
 _LIBM_ULPS = 4
 
@@ -527,15 +529,10 @@ def _shapes(box: Interval, args):
 
 def _has_non_smooth(jaxpr) -> bool:
     """Whether ``jaxpr`` or a jaxpr inside it applies a primitive :func:`_kink` knows."""
-    for eqn in jaxpr.eqns:
-        if eqn.primitive.name in _NON_SMOOTH:
-            return True
-        for value in eqn.params.values():
-            for inner in value if isinstance(value, tuple | list) else (value,):
-                inner = getattr(inner, "jaxpr", inner)  # a ClosedJaxpr's own
-                if isinstance(inner, jex.Jaxpr) and _has_non_smooth(inner):
-                    return True
-    return False
+    return any(
+        eqn.primitive.name in _NON_SMOOTH or any(map(_has_non_smooth, inner_jaxprs(eqn)))
+        for eqn in jaxpr.eqns
+    )
 
 
 def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None:
