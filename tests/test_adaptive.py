@@ -363,6 +363,35 @@ def test_missing_measurements_are_not_measured():
             assert error[-1] < 1e-5 * abs(float(theta[0])) and error[-1] < 1e-2 * error[4000]
 
 
+def test_a_channel_missing_throughout_equals_the_model_without_it():
+    """y's second channel NaN at every step: the continuous observer, with the Riccati gain and
+    with a fixed one, runs as on the model that lacks that row of C, with R and Sigma restricted
+    to the measured channels (non-diagonal, so that a product left unmasked would show)."""
+    with enable_x64():
+        model, obs, prior, Kbar, theta = charlie_setup()
+        sim = simulate_closed_loop(obs, model, theta, jnp.asarray(X0), prior, Kbar, multisine(1500))
+        ys = np.asarray(sim.observations).copy()
+        ys[:, 1] = np.nan
+        kept = np.array([0, 2])
+        R = jnp.array([[1.0, 0.3, 0.1], [0.3, 2.0, 0.2], [0.1, 0.2, 1.5]])
+        Sigma = jnp.array([[2.0, 0.5, -0.3], [0.5, 1.0, 0.4], [-0.3, 0.4, 1.0]])
+        K = 0.5 * model.C.T  # A - K C is stable for the Charlie model at both sizes
+        reduced = ContinuousLTV(model.A, model.B, model.C[kept], model.psi)
+        riccati = eqx.tree_at(lambda o: (o.R, o.Sigma), obs, (R, Sigma))
+        fixed = AdaptiveObserver(M=obs.M, Sigma=Sigma, K=K, dt=DT)
+        for full, part in (
+            (riccati, eqx.tree_at(lambda o: (o.R, o.Sigma), obs, (R[kept][:, kept], Sigma[kept][:, kept]))),
+            (fixed, AdaptiveObserver(M=obs.M, Sigma=Sigma[kept][:, kept], K=K[:, kept], dt=DT)),
+        ):  # fmt: skip
+            with_gap = run(full, model, jnp.asarray(ys), inputs=sim.inputs, prior=prior)
+            without = run(part, reduced, jnp.asarray(ys[:, kept]), inputs=sim.inputs, prior=prior)
+            for field in ("x", "theta", "Gamma", "excitation"):
+                np.testing.assert_allclose(
+                    getattr(with_gap, field), getattr(without, field), rtol=1e-9, atol=1e-12
+                )
+            assert np.all(np.asarray(with_gap.status) == np.asarray(without.status))
+
+
 def windup_reproduction():
     """Issue 18's reproduction: the input off from 30 s to 70 s, forgetting 0.99."""
     A = jnp.array([[-1.0, 1.0], [0.0, -2.0]])

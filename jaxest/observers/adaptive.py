@@ -44,6 +44,9 @@ from jaxest.linalg import (
     cho_solve_lower,
     chol_inverse,
     cholesky,
+    inv_spd,
+    mm,
+    mv,
     solve_triangular,
     symmetrize,
     working_precision_by_default,
@@ -360,12 +363,6 @@ class AdaptiveObserver(AbstractEstimator):
             window=excitation.empty_window(self.excitation_window, p, dtype),
         )
 
-    def gain(self, P, C, R_inv):
-        """K(t): fixed, or P C^T R^{-1} (eq 31)."""
-        if self.K is not None:
-            return self.K
-        return P @ C.T @ R_inv
-
     def step(self, model: ContinuousLTV, state: AdaptiveState, k, y, u, key=None):
         """Estimates at t_k, then integrate eqs 12, 17, 32 over [t_k, t_k + dt]."""
         t = self.time(k)
@@ -380,26 +377,32 @@ class AdaptiveObserver(AbstractEstimator):
             state.window, level, self.excitation_threshold
         )
         output = AdaptiveOutput(state.x, state.theta, state.Gamma, e, level, status)
-        # one inverse per sample, not one solve per Runge-Kutta stage (R is small, SPD)
+        # one inverse per sample, not one solve per Runge-Kutta stage (R is small, SPD). The
+        # products below are jaxest.linalg's: with a per-run C (the mask) and R^-1, ``@`` under
+        # vmap is a batched dot per product, and 12 runs of the 747 study (80 000 steps) took
+        # 21 s instead of 5 s
         R_inv = None
         if self.K is None:
-            R_inv = jnp.linalg.inv(masked_measurement(y, C_k @ state.x, C_k, self.R).R)
+            R_inv = inv_spd(masked_measurement(y, C_k @ state.x, C_k, self.R).R)
 
         def field(s, z):
             x, theta, Gamma, P, _ = z
             A, B, C = model.matrices(s)
             C = mask * C
             psi = model.psi(s, u, y)
-            K = self.gain(P, C, R_inv)
-            CG = C @ Gamma
-            adapt = self.M @ (CG.T @ (self.Sigma @ e))  # M Gamma^T C^T Sigma e
-            dx = A @ x + B @ u + psi @ theta + K @ e + Gamma @ adapt
-            dGamma = (A - K @ C) @ Gamma + psi
+            if P is None:
+                K = self.K
+            else:
+                PCt = mm(P, C.T)
+                K = mm(PCt, R_inv)  # eq 31, K = P C^T R^-1
+            CG = mm(C, Gamma)
+            adapt = mv(self.M, mv(CG.T, mv(self.Sigma, e)))  # M Gamma^T C^T Sigma e
+            dx = mv(A, x) + mv(B, u) + mv(psi, theta) + mv(K, e) + mv(Gamma, adapt)
+            dGamma = mm(A - mm(K, C), Gamma) + psi
             dP = None
             if P is not None:
-                PCt = P @ C.T
-                dP = A @ P + P @ A.T - PCt @ R_inv @ PCt.T + self.Q
-            return dx, adapt, dGamma, dP, CG.T @ self.Sigma @ CG
+                dP = mm(A, P) + mm(P, A.T) - mm(K, PCt.T) + self.Q
+            return dx, adapt, dGamma, dP, mm(CG.T, mm(self.Sigma, CG))
 
         p = state.theta.shape[0]
         z0 = (state.x, state.theta, state.Gamma, state.P, jnp.zeros((p, p), state.x.dtype))
