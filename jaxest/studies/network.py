@@ -77,10 +77,15 @@ class SquaredErrorRun(eqx.Module):
         return jax.lax.scan(body, (x0, state), (jnp.arange(self.steps), keys))[1]
 
 
-def monte_carlo(system, structure, gains, mean0, cov0, dt, steps, runs, key, chunk=50):
-    """Squared error sum_i |x_i - x^_i|^2 per run and sample step, (runs, steps)."""
+def monte_carlo(system, structure, gains, mean0, cov0, dt, steps, runs, key):
+    """Squared error sum_i |x_i - x^_i|^2 per run and sample step, (runs, steps).
+
+    All runs in one ``vmap``: 200 runs of 20 000 steps took 4.6 s, against 8.5 s in chunks of
+    50 (2-core CPU). The compiled program's one LAPACK call is the prior's Cholesky factor,
+    which the runs share, so jaxlib 0.10's hazard of concurrent batched LAPACK calls
+    (:func:`jaxest.monte_carlo`) does not arise."""
     one_run = SquaredErrorRun(system, NetworkFilter(structure, gains, dt), mean0, cov0, steps)
-    return np.asarray(je_monte_carlo(one_run, key, runs, chunk_size=chunk, mesh=None))
+    return np.asarray(je_monte_carlo(one_run, key, runs, mesh=None))
 
 
 @eqx.filter_jit
