@@ -541,15 +541,15 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
         F, B, H = model.matrices(k)
         n = F.shape[-1]
         # NaN entries of y_k are not measured: their rows of H drop out, their innovations are 0
-        measured = masked_measurement(y, H @ state.x_pred, H, self.R)
+        measured = masked_measurement(y, mv(H, state.x_pred), H, self.R)
         H, e = measured.H, measured.innovation
-        S_factor = cholesky(H @ state.P_pred @ H.T + measured.R)
-        K = cho_solve_lower(S_factor, H @ state.P_pred).T
-        I_KH = jnp.eye(n, dtype=F.dtype) - K @ H
-        P = symmetrize(I_KH @ state.P_pred)
-        Omega = H @ state.Ups_pred
+        S_factor = cholesky(mm(mm(H, state.P_pred), H.T) + measured.R)
+        K = cho_solve_lower(S_factor, mm(H, state.P_pred)).T
+        I_KH = jnp.eye(n, dtype=F.dtype) - mm(K, H)
+        P = symmetrize(mm(I_KH, state.P_pred))
+        Omega = mm(H, state.Ups_pred)
         S_inv_Omega = cho_solve_lower(S_factor, Omega)
-        increment = symmetrize(Omega.T @ S_inv_Omega)  # the information y_k carries about theta
+        increment = symmetrize(mm(Omega.T, S_inv_Omega))  # the information y_k carries about theta
         window = excitation.push(state.window, increment)
         L0 = state.prior_factor
         gramian = excitation.gramian(window)
@@ -561,16 +561,16 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
             info = lam * state.theta_info + (1 - lam) * chol_inverse(L0) + increment
         info = symmetrize(info)
         gain = cho_solve_lower(cholesky(info), S_inv_Omega.T)  # J^-1 Omega^T S^-1
-        theta = state.theta + gain @ e
-        Ups = I_KH @ state.Ups_pred
-        x = state.x_pred + K @ e + Ups @ (theta - state.theta)
+        theta = state.theta + mv(gain, e)
+        Ups = mm(I_KH, state.Ups_pred)
+        x = state.x_pred + mv(K, e) + mv(Ups, theta - state.theta)
         status = check_finite_status(x, theta, P, info) | not_excited
         Phi = model.phi(k, u, y)
         new = DiscreteState(
-            x_pred=F @ x + B @ u + Phi @ theta,
-            P_pred=symmetrize(F @ P @ F.T + self.Q),
+            x_pred=mv(F, x) + mv(B, u) + mv(Phi, theta),
+            P_pred=symmetrize(mm(mm(F, P), F.T) + self.Q),
             theta=theta,
-            Ups_pred=F @ Ups + Phi,
+            Ups_pred=mm(F, Ups) + Phi,
             theta_info=info,
             prior_factor=state.prior_factor,
             window=window,
