@@ -25,17 +25,17 @@ STUDIES: dict[str, str] = {
 }
 
 #: each study's wall time (s) at full size in a fresh-clone ``make reproduce`` (two at a time,
-#: 2-core CPU, cf5d05b, 2026-11-29, a slow day; docs/performance.md): ``reproduce --jobs`` starts
-#: the longest first by these where no earlier run into the output folder timed every study
+#: 2-core CPU, fff3800, 2026-11-29; docs/performance.md): ``reproduce --jobs`` starts the longest
+#: first by these where no earlier run into the output folder timed every study
 TYPICAL_SECONDS: dict[str, float] = {
-    "filters": 62,
-    "svd-ekf": 492,
-    "wiener": 9,
-    "smf-fdi": 31,
-    "network": 124,
-    "adaptive": 209,
-    "parallel": 285,
-    "sigma-point": 200,
+    "filters": 41,
+    "svd-ekf": 432,
+    "wiener": 8,
+    "smf-fdi": 26,
+    "network": 93,
+    "adaptive": 127,
+    "parallel": 223,
+    "sigma-point": 198,
 }
 
 
