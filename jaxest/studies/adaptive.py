@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxest.batching import vmap_minor
 from jaxest.observers import ObserverStatus as Status
 from jaxest.observers.adaptive import (
     AdaptiveObserver,
@@ -229,22 +230,26 @@ def concatenate_scenarios(*scenarios: Scenario) -> Scenario:
     )
 
 
-@eqx.filter_jit
-def _fly_batch(observer, plant, name, scenarios, T):
-    return jax.vmap(lambda s: fly(observer, plant, name, s, T))(scenarios)
-
-
-def fly_all(observer, plant, name, scenarios: Scenario, T: float):
-    """Run a batch of scenarios under one ``vmap`` (one compiled function per aircraft, horizon
-    and batch size); returns the list of closed-loop runs (as NumPy-backed pytrees).
+def fly_all(observers: dict, plant, name, scenarios: Scenario, T: float) -> dict[str, list]:
+    """Run a batch of scenarios with each of ``observers`` (label -> observer): one compiled
+    function per aircraft and horizon, the observer its argument; returns label -> the list of
+    closed-loop runs (as NumPy-backed pytrees).
 
     One batch, not a loop over small ones: a closed-loop step is a few small matrices, so a run
-    of 32,000 steps costs the scan's per-step overhead, which a batch shares. On the Charlie
-    horizon, 10 runs at once took 4.4-5.0 s, five batches of 2 runs 11.5 s (2-core CPU, after
-    compiling)."""
-    batch = jax.tree_util.tree_map(np.asarray, _fly_batch(observer, plant, name, scenarios, T))
+    of 32,000 steps costs the scan's per-step overhead, which a batch shares (on the Charlie
+    horizon, 10 runs at once took 4.4-5.0 s, five batches of 2 runs 11.5 s). The batch is
+    :func:`jaxest.vmap_minor`'s, the runs on the minor axis: 12 runs, after compiling, took
+    1.4 s for Charlie and 3.7 s for the 747, against 4.3 and 6.6 s under ``jax.vmap`` (2-core
+    CPU; the runs agree to 3e-15)."""
+    batched = vmap_minor(lambda obs, s: fly(obs, plant, name, s, T), in_axes=(None, 0))
     count = scenarios.x0.shape[0]
-    return [jax.tree_util.tree_map(lambda leaf, j=j: leaf[j], batch) for j in range(count)]
+    runs = {}
+    for label, observer in observers.items():
+        batch = jax.tree_util.tree_map(np.asarray, batched(observer, scenarios))
+        runs[label] = [
+            jax.tree_util.tree_map(lambda leaf, j=j: leaf[j], batch) for j in range(count)
+        ]
+    return runs
 
 
 def _plot_errors(path: Path, name: str, runs: dict, plant: Plant, state_names) -> None:
@@ -341,8 +346,8 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             window_full = observers["hand"].excitation_window
             result: dict = {"noisy": {}}
             flown, held_out = {}, {}
-            for label, obs in observers.items():
-                clean, noisy, *held_out[label] = fly_all(obs, plant, name, scenarios, T)
+            for label, runs_flown in fly_all(observers, plant, name, scenarios, T).items():
+                clean, noisy, *held_out[label] = runs_flown
                 flown[label] = clean
                 result[label] = record(clean, plant, window_full)
                 result["noisy"][label] = record(noisy, plant, window_full)
