@@ -60,24 +60,26 @@ def main() -> None:
         ys, us = data.observations, data.inputs
         steps = ys.shape[1]
 
-        continuous = eqx.filter_jit(
-            lambda y, u: run(observer, plant.model, y, inputs=u, prior=prior).theta
-        )
-        batched = eqx.filter_jit(
-            jax.vmap(lambda y, u: run(observer, plant.model, y, inputs=u, prior=prior).theta)
-        )
         dmodel = plant.model.discretize(DT)
         n, m, p = plant.model.A.shape[0], plant.model.C.shape[0], plant.theta.shape[0]
         dobs = DiscreteAdaptiveObserver(Q=1e-4 * jnp.eye(n), R=1e-2 * jnp.eye(m), forgetting=0.99)
         dprior = ObserverPrior(jnp.zeros(n), jnp.ones(p), jnp.eye(n), jnp.eye(p))
-        discrete = eqx.filter_jit(lambda y, u: run(dobs, dmodel, y, inputs=u, prior=dprior).theta)
-        dbatched = eqx.filter_jit(
-            jax.vmap(lambda y, u: run(dobs, dmodel, y, inputs=u, prior=dprior).theta)
-        )
 
-        # the same batches with the runs on the minor axis of every array
-        minor = vmap_minor(lambda y, u: run(observer, plant.model, y, inputs=u, prior=prior).theta)
-        dminor = vmap_minor(lambda y, u: run(dobs, dmodel, y, inputs=u, prior=dprior).theta)
+        def one_run(y, u):
+            return run(observer, plant.model, y, inputs=u, prior=prior).theta
+
+        def one_discrete_run(y, u):
+            return run(dobs, dmodel, y, inputs=u, prior=dprior).theta
+
+        # one run; the runs under jax.vmap; the runs on the minor axis of every array
+        continuous, batched, minor = (
+            eqx.filter_jit(one_run), eqx.filter_jit(jax.vmap(one_run)), vmap_minor(one_run)
+        )  # fmt: skip
+        discrete, dbatched, dminor = (
+            eqx.filter_jit(one_discrete_run),
+            eqx.filter_jit(jax.vmap(one_discrete_run)),
+            vmap_minor(one_discrete_run),
+        )
 
         single = _timed(continuous, ys[0], us[0])
         many = _timed(batched, ys, us, repeats=1)
