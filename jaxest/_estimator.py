@@ -125,8 +125,10 @@ class AbstractAssociativeEstimator(AbstractEstimator):
 
     ``prior_element(model, prior)`` describes the prior, ``element(model, k, y, u)`` one step,
     ``combine(earlier, later)`` composes two consecutive stretches, and
-    ``output(model, prefix, k)`` reads the step output from the combination of the prior with
-    elements 0..k. ``combine`` must be associative; ``run`` then may evaluate all prefixes with
+    ``output(model, previous, prefix, k)`` reads the step output from the prefixes before and
+    after step k: the combinations of the prior with elements 0..k-1 and 0..k (a filter's
+    prediction x(k|k-1) is the one, its log-likelihood up to k the other). ``combine`` must be
+    associative; ``run`` then may evaluate all prefixes with
     :func:`jaxest.scan.associative_scan`. The sequential ``init``/``step`` below use the same pieces.
     """
 
@@ -143,15 +145,16 @@ class AbstractAssociativeEstimator(AbstractEstimator):
         """The element of ``earlier`` followed by ``later`` (associative)."""
 
     @abc.abstractmethod
-    def output(self, model, prefix, k):
-        """The output of step ``k`` from the prefix element (prior, 0, ..., k)."""
+    def output(self, model, previous, prefix, k):
+        """The output of step ``k`` from the prefix elements (prior, 0, ..., k-1), ``previous``
+        (the prior's own element at k = 0), and (prior, 0, ..., k), ``prefix``."""
 
     def init(self, model, prior):
         return self.prior_element(model, prior)
 
     def step(self, model, state, k, y, u, key):
         prefix = self.combine(state, self.element(model, k, y, u))
-        return prefix, self.output(model, prefix, k)
+        return prefix, self.output(model, state, prefix, k)
 
 
 def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, ks, ys, us):
@@ -159,7 +162,9 @@ def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, k
     elements = jax.vmap(lambda k, y, u: estimator.element(model, k, y, u))(ks, ys, us)
     first = estimator.prior_element(model, prior)
     stacked = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, elements)
-    prefixes = associative_scan(jax.vmap(estimator.combine), stacked)
-    prefixes = jax.tree.map(lambda a: a[1:], prefixes)
-    outputs = jax.vmap(lambda p, k: estimator.output(model, p, k))(prefixes, ks)
+    prefixes = associative_scan(jax.vmap(estimator.combine), stacked)  # (prior, 0..k), k = -1..T-1
+    previous, prefixes = (
+        jax.tree.map(lambda a: a[s], prefixes) for s in (slice(-1), slice(1, None))
+    )
+    outputs = jax.vmap(lambda p, q, k: estimator.output(model, p, q, k))(previous, prefixes, ks)
     return outputs, jax.tree.map(lambda a: a[-1], prefixes)

@@ -108,12 +108,14 @@ class InformationElement(eqx.Module):
 
 class LeastSquaresOutput(eqx.Module):
     mean: jax.Array | None
+    prediction: jax.Array | None  # H_k theta(k-1), y_k's prediction: needs the previous prefix
     status: jax.Array | None
 
 
 class LeastSquaresResult(je.AbstractResult):
     final_state: InformationElement
     mean: jax.Array | None = None
+    prediction: jax.Array | None = None
     status: jax.Array | None = None
     any_status: jax.Array | None = None
     saved: object = None
@@ -137,12 +139,15 @@ class RecursiveLeastSquares(je.AbstractAssociativeEstimator):
     def combine(self, earlier, later):
         return InformationElement(earlier.info + later.info, earlier.vector + later.vector)
 
-    def output(self, model, prefix, k):
+    def output(self, model, previous, prefix, k):
         mean = jnp.linalg.solve(prefix.info, prefix.vector)
-        return LeastSquaresOutput(mean, je.finite_status(mean))
+        prediction = model[k] @ jnp.linalg.solve(previous.info, previous.vector)
+        return LeastSquaresOutput(mean, prediction, je.finite_status(mean))
 
     def result(self, outputs, final_state):
-        return LeastSquaresResult(final_state=final_state, mean=outputs.mean, status=outputs.status)
+        return LeastSquaresResult(final_state=final_state, mean=outputs.mean,
+                                  prediction=outputs.prediction,
+                                  status=outputs.status)  # fmt: skip
 
 
 def test_associative_estimator_parallel_equals_sequential_and_batch_least_squares():
@@ -156,6 +161,12 @@ def test_associative_estimator_parallel_equals_sequential_and_batch_least_square
     parallel = je.run(rls, Hs, ys, prior=prior)
     sequential = je.run(rls, Hs, ys, prior=prior, parallel=False)
     np.testing.assert_allclose(parallel.mean, sequential.mean, rtol=1e-10)
+    # output k sees the prefix before step k too: the prior mean at k = 0, then the estimate
+    # from y_0..y_{k-1}, in both paths
+    np.testing.assert_allclose(parallel.prediction, sequential.prediction, rtol=1e-10)
+    np.testing.assert_allclose(parallel.prediction[0], Hs[0] @ prior.mean, atol=1e-12)
+    before = np.einsum("tmp,tp->tm", Hs[1:], np.asarray(parallel.mean[:-1]))
+    np.testing.assert_allclose(parallel.prediction[1:], before, rtol=1e-10)
     # the last estimate is the regularised batch least-squares solution
     A = np.concatenate([np.asarray(Hs).reshape(T * m, p), np.eye(p) * 0.1 / 10.0])  # whitened
     b = np.concatenate([np.asarray(ys).reshape(-1), np.zeros(p)])

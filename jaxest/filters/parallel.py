@@ -54,25 +54,22 @@ rank-deficient whenever J_j is (fewer measurements than states, missing data). U
 (4) only through U^ U^^T and Z Z^T, so their own tria uses the tangent dL = dX Q (X^T = Q R),
 which is a valid tangent of L L^T whatever the rank (:func:`jaxest.linalg.tria_gram`).
 
-Outputs. The prefix of element k gives x(k+1|k); step k's output needs x(k|k-1), P(k|k-1) and
-y_k. Every element therefore also carries an auxiliary element (the identity for a single step)
-whose combination rule is ``aux(i * j) = main(i) * aux(j)``: for a prefix it is the prefix
-before the last step, i.e. x(k|k-1), P(k|k-1), and the last step's y_k, u_k ride along
-(``combine`` keeps the later one). The output of step k is then the sequential filter's own
-update of x(k|k-1), P(k|k-1) with y_k (:class:`~jaxest.KalmanFilter` or
-:class:`~jaxest.SquareRootKF`), so innovations, their covariances and the per-step
-log-likelihood terms are computed by the same code as the sequential filters'. The main and
-auxiliary combinations run as one batch of two (one batched factorisation per call, see the
-note on LAPACK in :mod:`jaxest.montecarlo`).
+Outputs. The prefix (prior, 0..k) gives x(k+1|k); step k's output needs x(k|k-1), P(k|k-1),
+which the prefix before it, (prior, 0..k-1), holds (the protocol hands ``output`` both), and
+y_k, which rides along in each element (``combine`` keeps the later one). The output of step k
+is the sequential filter's own update of x(k|k-1), P(k|k-1) with y_k
+(:class:`~jaxest.KalmanFilter` or :class:`~jaxest.SquareRootKF`), so innovations, their
+covariances and the per-step log-likelihood terms are computed by the same code as the
+sequential filters'.
 
-A check on the log-likelihood. The main element's log-likelihood is log p(y_0..y_k) and the
-auxiliary's log p(y_0..y_{k-1}), so in exact arithmetic
+A check on the log-likelihood. The prefix's log-likelihood is log p(y_0..y_k) and the previous
+prefix's log p(y_0..y_{k-1}), so in exact arithmetic
 
-    loglik(main) - loglik(aux) = log N(y_k; y(k|k-1), S_k),                                  (5)
+    loglik(prefix) - loglik(previous) = log N(y_k; y(k|k-1), S_k),                          (5)
 
 the step's term that the sequential update computes from x(k|k-1), P(k|k-1). The two sides come
 from different arithmetic (a tree of combinations against one update), and their largest
-discrepancy over the steps, relative to |loglik(main)| + |loglik(aux)| + |term| + 1, was
+discrepancy over the steps, relative to |loglik(prefix)| + |loglik(previous)| + |term| + 1, was
 0.05-90 times the relative error of the total log-likelihood against a float64 sequential
 filter (T = 10^4, R from 1 to 10^-6 x SPD, both forms, float32 and float64; docs/parallel.md).
 Where it exceeds sqrt(eps) -- the relation holds to fewer than half the digits of the dtype --
@@ -120,7 +117,7 @@ ParallelStatus = Status.extend(
 
 
 def loglik_consistency_status(prefix, before, term) -> jnp.ndarray:
-    """``LOGLIK_INCONSISTENT`` where eq (5) fails: loglik(main) - loglik(aux) (``prefix`` -
+    """``LOGLIK_INCONSISTENT`` where eq (5) fails: loglik(prefix) - loglik(previous) (``prefix`` -
     ``before``) differs from the sequential ``term`` by more than sqrt(eps) of the scale."""
     tolerance = jnp.sqrt(jnp.finfo(jnp.result_type(term)).eps)
     scale = jnp.abs(prefix) + jnp.abs(before) + jnp.abs(term) + 1
@@ -164,13 +161,6 @@ class Element(eqx.Module):
     @property
     def loglik(self):
         return self.logc
-
-
-def identity_element(n: int, dtype) -> Element:
-    """The neutral element: x = z, no measurement."""
-    zero = jnp.zeros((n, n), dtype)
-    return Element(jnp.eye(n, dtype=dtype), jnp.zeros(n, dtype), zero, jnp.zeros(n, dtype), zero,
-                   jnp.zeros((), dtype))  # fmt: skip
 
 
 def combine_standard(e: Element, l: Element) -> Element:
@@ -250,10 +240,10 @@ def homogeneous(A, b, U, Z, logc) -> SquareRootElement:
 
 
 class ParallelElement(eqx.Module):
-    """The main and auxiliary elements (leading axis of 2) and the last step's y_k - D_k u_k
-    (NaN where y_k is missing)."""
+    """An element of eq (3) or (4) and its last step's y_k - D_k u_k (NaN where y_k is
+    missing)."""
 
-    pair: Element
+    element: Element | SquareRootElement
     y: Float[Array, " m"]
 
 
@@ -295,16 +285,15 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
             return homogeneous(zero, mean, factor, jnp.zeros((n + 1, 1), mean.dtype), loglik)
         return Element(zero, mean, factor, jnp.zeros_like(mean), zero, loglik)
 
-    def _pair(self, main, aux):
-        return jax.tree.map(lambda a, b: jnp.stack([a, b]), main, aux)
-
     def prior_element(self, model, prior) -> ParallelElement:
         check_gaussian_prior(prior)
         cov = cholesky(prior.cov) if self.square_root else prior.cov
-        main = self._from_gaussian(prior.mean, cov, jnp.zeros((), jnp.result_type(prior.mean)))
-        m = model.R.shape[-1]
-        y = jnp.full((m,), jnp.nan, prior.mean.dtype)
-        return ParallelElement(self._pair(main, main), y)
+        element = self._from_gaussian(prior.mean, cov, jnp.zeros((), jnp.result_type(prior.mean)))
+        return ParallelElement(element, self._no_measurement(model, prior.mean.dtype))
+
+    @staticmethod
+    def _no_measurement(model, dtype):
+        return jnp.full((model.R.shape[-1],), jnp.nan, dtype)
 
     def element(self, model, k, y, u) -> ParallelElement:
         """Eq (2), in homogeneous coordinates for the square-root form."""
@@ -323,34 +312,30 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
         if self.square_root:  # |Z^T [z; 1]|^2 = |Hw z - rw|^2
             normaliser = gaussian_loglik(jnp.zeros_like(rw), R_chol, meas.num_observed)
             Z = jnp.concatenate([Hw.T, -rw[None]], 0)
-            main = homogeneous(F, b, G @ cholesky(Q), Z, normaliser)
-            identity = homogeneous(jnp.eye(n, dtype=dtype), zero, jnp.zeros((n, n), dtype),
-                                   jnp.zeros((n + 1, 1), dtype), jnp.zeros((), dtype))  # fmt: skip
+            element = homogeneous(F, b, G @ cholesky(Q), Z, normaliser)
         else:
             logc = gaussian_loglik(rw, R_chol, meas.num_observed)
             C, J = symmetrize(sandwich(G, Q)), symmetrize(Hw.T @ Hw)
-            main, identity = Element(F, b, C, Hw.T @ rw, J, logc), identity_element(n, dtype)
-        return ParallelElement(self._pair(main, identity), y - y_pred)
+            element = Element(F, b, C, Hw.T @ rw, J, logc)
+        return ParallelElement(element, y - y_pred)
 
     def combine(self, earlier: ParallelElement, later: ParallelElement) -> ParallelElement:
-        first = jax.tree.map(lambda a: jnp.stack([a[0], a[0]]), earlier.pair)
-        pair = jax.vmap(self._combine_one)(first, later.pair)
-        return ParallelElement(pair, later.y)
+        return ParallelElement(self._combine_one(earlier.element, later.element), later.y)
 
-    def output(self, model, prefix: ParallelElement, k):
-        """Step k's output: the sequential update of x(k|k-1), P(k|k-1) (the auxiliary
-        element of the prefix) with y_k, its status checked against eq (5)."""
-        main, aux = (jax.tree.map(lambda a: a[i], prefix.pair) for i in (0, 1))
-        factor = self._factor_type(aux.factor)
+    def output(self, model, previous: ParallelElement, prefix: ParallelElement, k):
+        """Step k's output: the sequential update of x(k|k-1), P(k|k-1) (``previous``) with
+        y_k, its status checked against eq (5)."""
+        before, after = previous.element, prefix.element
+        factor = self._factor_type(before.factor)
         # the input's part of y_k is already removed, so u = None; the prediction is discarded
-        _, _, out = self._update.update_predict(model, aux.mean, factor, k, prefix.y, None)
+        _, _, out = self._update.update_predict(model, before.mean, factor, k, prefix.y, None)
         out = out.with_covariances_checked()
-        inconsistent = loglik_consistency_status(main.loglik, aux.loglik, out.loglik)
+        inconsistent = loglik_consistency_status(after.loglik, before.loglik, out.loglik)
         return eqx.tree_at(lambda o: o.status, out, out.status | inconsistent)
 
     def _gaussian(self, prefix: ParallelElement) -> GaussianState:
-        main = jax.tree.map(lambda a: a[0], prefix.pair)
-        return GaussianState(main.mean, self._factor_type(main.factor), main.loglik)
+        element = prefix.element
+        return GaussianState(element.mean, self._factor_type(element.factor), element.loglik)
 
     def init(self, model, prior) -> GaussianState:
         return self._gaussian(self.prior_element(model, prior))
@@ -360,11 +345,12 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
             own = state.factor.chol if self.square_root else state.factor.cov
         else:  # resuming from another filter's state
             own = cholesky(state.factor.cov) if self.square_root else state.factor.cov
-        main = self._from_gaussian(state.mean, own, state.loglik)
-        prefix = self.combine(
-            ParallelElement(self._pair(main, main), y), self.element(model, k, y, u)
+        previous = ParallelElement(
+            self._from_gaussian(state.mean, own, state.loglik),
+            self._no_measurement(model, state.mean.dtype),
         )
-        return self._gaussian(prefix), self.output(model, prefix, k)
+        prefix = self.combine(previous, self.element(model, k, y, u))
+        return self._gaussian(prefix), self.output(model, previous, prefix, k)
 
     def result(self, outputs, final_state) -> FilterResult:
         if isinstance(final_state, ParallelElement):
