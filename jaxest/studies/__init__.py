@@ -25,17 +25,17 @@ STUDIES: dict[str, str] = {
 }
 
 #: each study's wall time (s) at full size in a fresh-clone ``make reproduce`` (two at a time,
-#: 2-core CPU, fff3800, 2026-11-29; docs/performance.md): ``reproduce --jobs`` starts the longest
+#: 2-core CPU, 0443cdd, 2026-11-29; docs/performance.md): ``reproduce --jobs`` starts the longest
 #: first by these where no earlier run into the output folder timed every study
 TYPICAL_SECONDS: dict[str, float] = {
-    "filters": 41,
-    "svd-ekf": 432,
+    "filters": 54,
+    "svd-ekf": 454,
     "wiener": 8,
-    "smf-fdi": 26,
-    "network": 93,
-    "adaptive": 127,
-    "parallel": 223,
-    "sigma-point": 198,
+    "smf-fdi": 25,
+    "network": 103,
+    "adaptive": 94,
+    "parallel": 152,
+    "sigma-point": 212,
 }
 
 
