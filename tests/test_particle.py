@@ -98,6 +98,37 @@ def test_resampling_searches_by_a_loop_on_the_cpu_and_by_a_sort_on_gpus():
     np.testing.assert_array_equal(jax.jit(_search_sorted)(cdf, u), by_sort)
 
 
+@pytest.mark.parametrize("scheme", ["stratified", "systematic"])
+def test_sorted_schemes_count_on_the_cpu_with_the_searchs_indices(scheme):
+    """Stratified and systematic ancestors come from counting on the CPU (no loop, no sort in the
+    program) and from the sort on GPUs; the counting gives the binary search's indices for 200
+    keys at N = 10^3 and 20 at N = 10^5, with runs of zero weights and tiny ones."""
+    for N, num_keys in ((1_000, 200), (100_000, 20)):
+        w = jax.random.exponential(jax.random.PRNGKey(N), (N,), jnp.float64) ** 4
+        w = w.at[: N // 10].set(0.0).at[N // 2 : N // 2 + 7].set(1e-300)
+
+        def both(key, w):
+            ancestors = resample(key, w, scheme)
+            N = w.shape[0]
+            offsets = jax.random.uniform(key, () if scheme == "systematic" else (N,), w.dtype)
+            cdf = jnp.cumsum(w) / jnp.sum(w)
+            by_search = jnp.searchsorted(cdf, (jnp.arange(N) + offsets) / N, side="right")
+            return ancestors, jnp.minimum(by_search, N - 1)
+
+        keys = jax.random.split(jax.random.PRNGKey(7), num_keys)
+        ancestors, by_search = jax.jit(jax.vmap(both, (0, None)))(keys, w)
+        np.testing.assert_array_equal(ancestors, by_search)
+    lower = lambda fn, platform: export.export(jax.jit(fn), platforms=[platform])(
+        jax.random.PRNGKey(0)
+    ).mlir_module()  # fmt: skip
+    shape = () if scheme == "systematic" else w.shape
+    offsets_only = lower(lambda key: jax.random.uniform(key, shape, w.dtype), "cpu")
+    on_cpu, on_gpu = (lower(lambda key: resample(key, w, scheme), p) for p in ("cpu", "cuda"))
+    # the CPU program loops only where drawing the offsets does (the PRNG's rounds)
+    assert on_cpu.count("stablehlo.while") == offsets_only.count("stablehlo.while")
+    assert "stablehlo.sort" not in on_cpu and "stablehlo.sort" in on_gpu
+
+
 # --- likelihood against the Kalman filter ----------------------------------------------------
 
 

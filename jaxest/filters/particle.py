@@ -89,16 +89,46 @@ def resample(key, weights: Float[Array, " N"], scheme: str = "systematic") -> In
     N = weights.shape[0]
     dtype = weights.dtype
     if scheme == "multinomial":
-        u = jax.random.uniform(key, (N,), dtype)
+        offsets = None
     elif scheme == "stratified":
-        u = (jnp.arange(N, dtype=dtype) + jax.random.uniform(key, (N,), dtype)) / N
+        offsets = jax.random.uniform(key, (N,), dtype)
     elif scheme == "systematic":
-        u = (jnp.arange(N, dtype=dtype) + jax.random.uniform(key, (), dtype)) / N
+        offsets = jax.random.uniform(key, (), dtype)
     else:
         raise ValueError(f"resampling: expected one of {RESAMPLING}, got {scheme!r}")
     cdf = jnp.cumsum(weights)
     cdf = cdf / cdf[-1]
-    return jnp.minimum(_search_sorted(cdf, u), N - 1)
+    if offsets is None:
+        return jnp.minimum(_search_sorted(cdf, jax.random.uniform(key, (N,), dtype)), N - 1)
+    sorted_u = lambda: (jnp.arange(N, dtype=dtype) + offsets) / N
+    ancestors = jax.lax.platform_dependent(
+        cpu=lambda: _ancestors_by_counting(cdf, offsets),
+        default=lambda: _search_sorted(cdf, sorted_u()),
+    )
+    return jnp.minimum(ancestors, N - 1)
+
+
+def _ancestors_by_counting(cdf, offsets):
+    """The stratified or systematic ancestors, u_i = (i + offsets_i) / N (a scalar offset:
+    systematic), in O(N) without a search: with b_j = #{i : u_i < cdf_j}, ancestor a_i is
+    #{j : b_j <= i} (u is sorted), a cumulative sum of the counts of the b_j. b_j is
+    ceil(N cdf_j - U) for the systematic u; for the stratified, with k = floor(N cdf_j), the k
+    strata below and stratum k's own u_k if it falls below cdf_j. A zero weight repeats cdf_j,
+    hence b_j: no children. The same indices as the search over 200 keys at N = 10^3 and 10^5
+    (tests/test_particle.py); on the 2-core CPU, systematic at N = 10^5 1.3 against 3.2 ms,
+    stratified 3.1 against 9.7 ms, and under ``vmap`` over 200 runs of N = 10^3 2.1 against 3.9
+    and 6.3 against 21 ms. Accelerators keep the sort (:func:`_search_sorted`): not measured
+    there."""
+    N = cdf.shape[0]
+    scaled = N * cdf
+    if offsets.ndim == 0:
+        below = jnp.ceil(scaled - offsets)
+    else:
+        strata = jnp.clip(jnp.floor(scaled), 0, N)
+        own = offsets[jnp.minimum(strata, N - 1).astype(jnp.int32)]
+        below = strata + ((strata < N) & (own < scaled - strata))
+    below = jnp.clip(below, 0, N).astype(jnp.int32)
+    return jnp.cumsum(jnp.zeros(N + 1, jnp.int32).at[below].add(1))[:N]
 
 
 def _search_sorted(cdf, u):
@@ -108,7 +138,8 @@ def _search_sorted(cdf, u):
     ``benchmarks/particle.py`` (N = 1000, T = 200, same indices): on the 2-core CPU (``--quick``)
     the sort took 2.4-3.5x the binary search's time; on an NVIDIA H100 the binary search took
     2.7x the sort's on one sequence (200 against 74 us per step) and 1.5x under ``vmap`` over
-    200 runs (0.97 against 0.65 us per step and run)."""
+    200 runs (0.97 against 0.65 us per step and run). Multinomial resampling everywhere, and
+    stratified and systematic on accelerators (:func:`_ancestors_by_counting` on the CPU)."""
 
     search = functools.partial(jnp.searchsorted, side="right")
     return jax.lax.platform_dependent(
