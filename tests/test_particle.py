@@ -107,9 +107,8 @@ def test_sorted_schemes_count_on_the_cpu_with_the_searchs_indices(scheme):
         w = jax.random.exponential(jax.random.PRNGKey(N), (N,), jnp.float64) ** 4
         w = w.at[: N // 10].set(0.0).at[N // 2 : N // 2 + 7].set(1e-300)
 
-        def both(key, w):
+        def both(key, w, N=N):
             ancestors = resample(key, w, scheme)
-            N = w.shape[0]
             offsets = jax.random.uniform(key, () if scheme == "systematic" else (N,), w.dtype)
             cdf = jnp.cumsum(w) / jnp.sum(w)
             by_search = jnp.searchsorted(cdf, (jnp.arange(N) + offsets) / N, side="right")
