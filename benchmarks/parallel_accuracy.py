@@ -31,8 +31,9 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jaxest as je  # noqa: E402
+from jaxest._estimator import associative_prefixes  # noqa: E402
+from jaxest.filters.parallel import loglik_discrepancy  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
-from jaxest.scan import associative_scan  # noqa: E402
 
 SCALES = (1e-1, 1e-2, 1e-3, 1e-4, 1e-5, 1e-6)
 FIELDS = ("mean", "cov", "loglik", "status")
@@ -57,17 +58,11 @@ def eq5_discrepancy(filt, model, prior, ys):
     """The largest relative discrepancy of eq (5) over the steps: every prefix by the
     associative scan, each step's term from ``output`` (as ``je.run`` computes them)."""
     ks = jnp.arange(ys.shape[0])
-    elements = jax.vmap(lambda k, y: filt.element(model, k, y, None))(ks, ys)
-    first = filt.prior_element(model, prior)
-    stacked = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, elements)
-    prefixes = associative_scan(jax.vmap(filt.combine), stacked)
-    loglik = jax.vmap(lambda prefix: prefix.element.loglik)(prefixes)  # a property of one
-    term = jax.vmap(lambda p, q, k: filt.output(model, p, q, k))(
-        jax.tree.map(lambda a: a[:-1], prefixes), jax.tree.map(lambda a: a[1:], prefixes), ks
-    ).loglik
-    before, after = loglik[:-1], loglik[1:]
-    scale = jnp.abs(after) + jnp.abs(before) + jnp.abs(term) + 1
-    return jnp.max(jnp.abs(after - before - term) / scale)
+    previous, prefixes = associative_prefixes(filt, model, prior, ks, ys, None)
+    loglik = jax.vmap(lambda prefix: prefix.element.loglik)  # a property of one prefix
+    term = jax.vmap(lambda p, q, k: filt.output(model, p, q, k))(previous, prefixes, ks).loglik
+    discrepancy, scale = loglik_discrepancy(loglik(prefixes), loglik(previous), term)
+    return jnp.max(discrepancy / scale)
 
 
 def relative(a, b) -> float:

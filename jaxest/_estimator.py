@@ -157,14 +157,18 @@ class AbstractAssociativeEstimator(AbstractEstimator):
         return prefix, self.output(model, state, prefix, k)
 
 
-def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, ks, ys, us):
-    """All step outputs and the final prefix of an associative estimator, in O(log T) depth."""
+def associative_prefixes(estimator: AbstractAssociativeEstimator, model, prior, ks, ys, us):
+    """Every step's prefixes before and after it, (prior, 0..k-1) and (prior, 0..k), stacked
+    over k, in O(log T) depth."""
     elements = jax.vmap(lambda k, y, u: estimator.element(model, k, y, u))(ks, ys, us)
     first = estimator.prior_element(model, prior)
     stacked = jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), first, elements)
     prefixes = associative_scan(jax.vmap(estimator.combine), stacked)  # (prior, 0..k), k = -1..T-1
-    previous, prefixes = (
-        jax.tree.map(lambda a: a[s], prefixes) for s in (slice(-1), slice(1, None))
-    )
+    return tuple(jax.tree.map(lambda a: a[s], prefixes) for s in (slice(-1), slice(1, None)))
+
+
+def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, ks, ys, us):
+    """All step outputs and the final prefix of an associative estimator, in O(log T) depth."""
+    previous, prefixes = associative_prefixes(estimator, model, prior, ks, ys, us)
     outputs = jax.vmap(lambda p, q, k: estimator.output(model, p, q, k))(previous, prefixes, ks)
     return outputs, jax.tree.map(lambda a: a[-1], prefixes)

@@ -117,15 +117,19 @@ ParallelStatus = Status.extend(
 """The parallel Kalman filter's status flags: the core's and LOGLIK_INCONSISTENT."""
 
 
-def loglik_consistency_status(prefix, before, term) -> jnp.ndarray:
-    """``LOGLIK_INCONSISTENT`` where eq (5) fails: loglik(prefix) - loglik(previous) (``prefix`` -
-    ``before``) differs from the sequential ``term`` by more than sqrt(eps) of the scale."""
-    tolerance = jnp.sqrt(jnp.finfo(jnp.result_type(term)).eps)
+def loglik_discrepancy(prefix, before, term):
+    """Eq (5)'s discrepancy |loglik(prefix) - loglik(previous) - term| (``prefix`` - ``before``)
+    and its scale |prefix| + |before| + |term| + 1."""
     scale = jnp.abs(prefix) + jnp.abs(before) + jnp.abs(term) + 1
-    return status_where(
-        ~(jnp.abs(prefix - before - term) <= tolerance * scale),
-        ParallelStatus.LOGLIK_INCONSISTENT,
-    )
+    return jnp.abs(prefix - before - term), scale
+
+
+def loglik_consistency_status(prefix, before, term) -> jnp.ndarray:
+    """``LOGLIK_INCONSISTENT`` where eq (5) fails: the discrepancy exceeds sqrt(eps) of the
+    scale (:func:`loglik_discrepancy`)."""
+    tolerance = jnp.sqrt(jnp.finfo(jnp.result_type(term)).eps)
+    discrepancy, scale = loglik_discrepancy(prefix, before, term)
+    return status_where(~(discrepancy <= tolerance * scale), ParallelStatus.LOGLIK_INCONSISTENT)
 
 
 class ParallelFilterResult(FilterResult):

@@ -384,6 +384,7 @@ class AdaptiveObserver(AbstractEstimator):
         R_inv = None
         if self.K is None:
             R_inv = inv_spd(masked_measurement(y, C_k @ state.x, C_k, self.R).R)
+        Sigma_e = mv(self.Sigma, e)  # constant over the step
 
         def field(s, z):
             x, theta, Gamma, P, _ = z
@@ -396,7 +397,7 @@ class AdaptiveObserver(AbstractEstimator):
                 PCt = mm(P, C.T)
                 K = mm(PCt, R_inv)  # eq 31, K = P C^T R^-1
             CG = mm(C, Gamma)
-            adapt = mv(self.M, mv(CG.T, mv(self.Sigma, e)))  # M Gamma^T C^T Sigma e
+            adapt = mv(self.M, mv(CG.T, Sigma_e))  # M Gamma^T C^T Sigma e
             dx = mv(A, x) + mv(B, u) + mv(psi, theta) + mv(K, e) + mv(Gamma, adapt)
             dGamma = mm(A - mm(K, C), Gamma) + psi
             dP = None
@@ -543,8 +544,9 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
         # NaN entries of y_k are not measured: their rows of H drop out, their innovations are 0
         measured = masked_measurement(y, mv(H, state.x_pred), H, self.R)
         H, e = measured.H, measured.innovation
-        S_factor = cholesky(mm(mm(H, state.P_pred), H.T) + measured.R)
-        K = cho_solve_lower(S_factor, mm(H, state.P_pred)).T
+        HP = mm(H, state.P_pred)
+        S_factor = cholesky(mm(HP, H.T) + measured.R)
+        K = cho_solve_lower(S_factor, HP).T
         I_KH = jnp.eye(n, dtype=F.dtype) - mm(K, H)
         P = symmetrize(mm(I_KH, state.P_pred))
         Omega = mm(H, state.Ups_pred)
