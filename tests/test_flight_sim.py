@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxest import Gaussian, Status, run
+from jaxest import Gaussian, InformationStatus, Status, run
 from jaxest.filters import EKF, SVDEKF
 from jaxest.systems import flight, flight_sim as sim
 from jaxest.systems.flight import N_KIN, PARAMETERS
@@ -109,8 +109,14 @@ def test_svd_ekf_recovers_gyro_biases_consistently():
 
 
 def test_svd_ekf_runs_in_float32_on_the_flight_model():
+    """Finite and positive definite in float32, attitude within 0.5 deg. The first update from
+    this wide prior may be flagged: on the first run it strays 0.63 posterior standard
+    deviations from the covariance form, and the run's worst state then differs from the float64
+    run's by 0.66 standard deviations at the median step, 0.76 at most (ImprovedSVDKF: 0.08 and
+    0.11, KalmanFilter 0.003 and 0.03), so the flag is the only status allowed
+    (docs/robustness.md)."""
     err, P, status = small_monte_carlo(SVDEKF(), runs=2, dtype=jnp.float32)
-    assert np.all(np.asarray(status) == Status.OK)
+    assert np.all(np.asarray(status) & ~np.int32(InformationStatus.INFORMATION_INCONSISTENT) == 0)
     assert np.max(np.abs(np.asarray(err[:, 3:5]))) < 0.5 * DEG  # attitude errors
 
 

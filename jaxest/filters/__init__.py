@@ -15,6 +15,8 @@ from jaxest.filters.iterated import IteratedEKF as IteratedEKF
 from jaxest.filters.kalman import (
     EKF as EKF,
     InformationFilter as InformationFilter,
+    InformationFormResult as InformationFormResult,
+    InformationStatus as InformationStatus,
     KalmanFilter as KalmanFilter,
 )
 from jaxest.filters.parallel import (

@@ -57,22 +57,31 @@ def definiteness_status(P) -> Int[Array, ""]:
     return factor_status(cholesky(symmetrize(P)))
 
 
+def whitened_innovation(P, meas: Measurement):
+    """The innovation covariance S = H P H^T + R, its Cholesky factor S_chol, and S_chol^-1 H P
+    and S_chol^-1 e: one triangular solve serves the gain, P H^T S^-1 e = (S_chol^-1 H P)^T
+    (S_chol^-1 e), and the likelihood (:func:`gaussian_loglik`)."""
+    n = P.shape[0]
+    HP = mm(meas.H, P)
+    S = symmetrize(mm(HP, meas.H.T) + meas.R)
+    S_chol = cholesky(S)
+    Z = solve_triangular(
+        S_chol, jnp.concatenate([HP, meas.innovation[:, None]], axis=1), lower=True
+    )
+    return S, S_chol, Z[:, :n], Z[:, n]
+
+
 def joseph_update(x, P, meas: Measurement):
     """Covariance-form measurement update with the Joseph form of P+ (Bucy & Joseph).
 
     Returns x+, P+, the innovation covariance S = H P H^T + R, its Cholesky factor and the
-    whitened innovation S_chol^-1 e (one triangular solve serves the gain and the likelihood).
+    whitened innovation S_chol^-1 e (:func:`whitened_innovation`).
     """
-    H, R, e = meas.H, meas.R, meas.innovation
-    n = x.shape[0]
-    HP = mm(H, P)
-    S = symmetrize(mm(HP, H.T) + R)
-    S_chol = cholesky(S)
-    Z = solve_triangular(S_chol, jnp.concatenate([HP, e[:, None]], axis=1), lower=True)
-    K = solve_triangular(S_chol.T, Z[:, :n], lower=False).T
-    IKH = jnp.eye(n, dtype=P.dtype) - mm(K, H)
-    P_post = symmetrize(sandwich(IKH, P) + sandwich(K, R))
-    return x + mv(K, e), P_post, S, S_chol, Z[:, n]
+    S, S_chol, whitened_HP, whitened = whitened_innovation(P, meas)
+    K = solve_triangular(S_chol.T, whitened_HP, lower=False).T
+    IKH = jnp.eye(x.shape[0], dtype=P.dtype) - mm(K, meas.H)
+    P_post = symmetrize(sandwich(IKH, P) + sandwich(K, meas.R))
+    return x + mv(K, meas.innovation), P_post, S, S_chol, whitened
 
 
 def covariance_predict(model, x, P, u, k):

@@ -4,8 +4,11 @@
   stacked array [D U^T F^T; Lq^T G^T] (Lq Lq^T = Q) gives U(k+1|k) = V', D(k+1|k) = D'.
   Measurement update in information form (eqs 16-23): with L L^T = R^-1 (eq 17), the SVD of
   [L^T H U; D^-1] (eq 18-19) gives U+ = U V'', D+ = D''^-1, and K = U+ D+^2 U+^T H^T L L^T
-  (eq 24). The paper gives no likelihood; it follows here from the same factors by the
-  determinant lemma (see :func:`~jaxest.filters.kalman.information_loglik`).
+  (eq 24). The paper gives no likelihood; it is taken from S = H P H^T + R, and a step whose
+  correction K e strays from the covariance form's by more than half a posterior standard
+  deviation raises ``INFORMATION_INCONSISTENT``
+  (:func:`~jaxest.filters.kalman.covariance_form_terms`): where R is far below H P H^T the
+  information form loses its digits (docs/robustness.md).
 - :class:`ImprovedSVDKF`: Kulikova & Tsyganova's covariance-form SVD filter (docs/papers/svd_ekf.md):
   no inverse of D or R, PSD Q allowed, Joseph-form covariance and the likelihood from the
   innovation's own SVD.
@@ -25,9 +28,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from jaxest.filters.base import AbstractGaussianFilter, StepOutput, SVDFactor
+from jaxest.filters.base import AbstractGaussianFilter, FilterResult, StepOutput, SVDFactor
 from jaxest.filters.common import LOG_2PI, covariance_step, masked_measurement, step_status
-from jaxest.filters.kalman import information_loglik
+from jaxest.filters.kalman import (
+    InformationFormResult,
+    correction_gap,
+    covariance_form_terms,
+    gap_status,
+)
 from jaxest.linalg import (
     cholesky,
     cov_from_factor,
@@ -35,7 +43,6 @@ from jaxest.linalg import (
     factor_psd_or_nan,
     factor_tangent_to_cov,
     keep_factors,
-    logdet_chol,
     right_svd,
     solve_triangular,
     symmetrize,
@@ -56,27 +63,22 @@ def sqrt_rows(M):
 
 
 def paper_svd_step(model, x, U, D, y, u, k):
-    """One step of the paper's SVD-EKF: measurement update (eqs 16-24), then time update (13-15)."""
+    """One step of the paper's SVD-EKF: measurement update (eqs 16-24), then time update (13-15).
+    Its last output is the :func:`~jaxest.filters.kalman.correction_gap` of the update."""
     y_pred, H, R = model.observation(x, u, k)
     meas = masked_measurement(y, y_pred, H, R)
     R_chol = cholesky(meas.R)
     eye_m = jnp.eye(meas.R.shape[0], dtype=R.dtype)
     L = solve_triangular(R_chol, eye_m, lower=True).T  # L L^T = R^-1 (eq 17)
-    R_inv = L @ L.T
     s, V = right_svd(jnp.concatenate([L.T @ meas.H @ U, jnp.diag(1.0 / D)]))  # eqs 18-19
     U_post, D_post = U @ V, 1.0 / s  # eqs 21-23
-    P_post = cov_from_factor(U_post, D_post)
-    b = meas.H.T @ R_inv @ meas.innovation
-    x_post = x + P_post @ b  # eqs 8, 24
-    loglik = information_loglik(
-        meas.innovation, R_inv, b, P_post,
-        logdet_chol(R_chol),
-        2.0 * jnp.sum(jnp.log(D)), 2.0 * jnp.sum(jnp.log(D_post)), meas.num_observed,
-    )  # fmt: skip
-    S = symmetrize(meas.H @ cov_from_factor(U, D) @ meas.H.T + meas.R)
+    correction = cov_from_factor(U_post, D_post) @ (meas.H.T @ (L @ (L.T @ meas.innovation)))
+    x_post = x + correction  # eqs 8, 24
+    S, loglik, expected = covariance_form_terms(cov_from_factor(U, D), meas)
     x_next, F, G, Q = model.transition(x_post, u, k)
     U_next, D_next = svd_time_update(U_post, D_post, F, sqrt_rows(Q) @ G.T)
-    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik)
+    gap = correction_gap(correction, expected, U_post / D_post)  # Y+ = (U+ / D+)(U+ / D+)^T
+    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik, gap)
 
 
 def improved_svd_step(model, x, U, D, y, u, k):
@@ -100,7 +102,8 @@ def improved_svd_step(model, x, U, D, y, u, k):
     S = symmetrize((Q_Re * Re) @ Q_Re.T)
     x_next, F, G, Q = model.transition(x_post, u, k)
     U_next, D_next = svd_time_update(U_post, D_post, F, sqrt_rows(Q) @ G.T)
-    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik)
+    gap = jnp.zeros((), loglik.dtype)  # a covariance-form step: nothing to disagree with
+    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik, gap)
 
 
 @eqx.filter_custom_jvp
@@ -113,11 +116,11 @@ def factored_step(model, x, U, D, y, u, k, *, primal):
 def _factored_step_jvp(primals, tangents, *, primal):
     model, x, U, D, y, u, k = primals
     t_model, t_x, t_U, t_D, t_y, t_u, _ = tangents
-    x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik) = factored_step(
+    x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, gap) = factored_step(
         model, x, U, D, y, u, k, primal=primal
     )
     U_next, D_next, U_post, D_post = keep_factors(U_next, D_next, U_post, D_post)
-    out = x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik)
+    out = x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, gap)
     zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     dP = factor_tangent_to_cov(U, D, zeros(t_U, U), zeros(t_D, D))
     ref = lambda model, x, P, y, u: covariance_step(model, x, P, y, u, k)
@@ -127,9 +130,9 @@ def _factored_step_jvp(primals, tangents, *, primal):
     dU_next, dD_next = cov_tangent_to_factor(U_next, D_next, symmetrize(dP_next))
     dx_post, dP_post, de, dS, dloglik = d_outputs
     dU_post, dD_post = cov_tangent_to_factor(U_post, D_post, symmetrize(dP_post))
-    d_outputs = (dx_post, dU_post, dD_post, de, dS, dloglik)
+    d_outputs = (dx_post, dU_post, dD_post, de, dS, dloglik, None)  # the gap: a diagnostic
     d_outputs = jax.tree.map(
-        zeros, d_outputs, (x_post, U_post, D_post, e, S, loglik), is_leaf=lambda t: t is None
+        zeros, d_outputs, (x_post, U_post, D_post, e, S, loglik, gap), is_leaf=lambda t: t is None
     )
     return out, (dx_next, dU_next, dD_next, d_outputs)
 
@@ -144,11 +147,12 @@ class AbstractSVDFilter(AbstractGaussianFilter):
     svd_step: ClassVar[staticmethod]
 
     def update_predict(self, model, x, factor: SVDFactor, k, y, u):
-        x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik) = factored_step(
+        x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, gap) = factored_step(
             model, x, factor.U, factor.D, y, u, k, primal=self.svd_step
         )
         P_post = cov_from_factor(U_post, D_post)
         status = step_status(x_next, U_next, D_next, P_post, loglik, positive=jnp.all(D_next > 0))
+        status = status | gap_status(gap)
         out = StepOutput(
             x, factor.cov, x_post, P_post, e, S, loglik, status,
             predicted_factor=factor, factor=SVDFactor(U_post, D_post),
@@ -159,8 +163,10 @@ class AbstractSVDFilter(AbstractGaussianFilter):
 class SVDEKF(AbstractSVDFilter):
     """The paper's SVD-based EKF (eqs 11-25). R positive definite (R^-1 is formed); Q may be
     singular, Q = 0 included (its square root comes from a symmetric eigendecomposition), as
-    long as P stays positive definite (D^-1 is formed in the measurement update)."""
+    long as P stays positive definite (D^-1 is formed in the measurement update). Its status
+    bits are :data:`~jaxest.filters.kalman.InformationStatus`."""
 
+    result_type: ClassVar[type[FilterResult]] = InformationFormResult
     svd_step: ClassVar[staticmethod] = staticmethod(paper_svd_step)
 
 
