@@ -27,9 +27,10 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxest._priors import Gaussian
+from jaxest._status import finite_status
 from jaxest.linalg import after, factor_psd_or_nan, mv, working_precision_by_default
 
 
@@ -224,14 +225,24 @@ class NonlinearGaussian(AbstractGaussianModel):
 
 
 class Simulation(eqx.Module):
-    """Output of :func:`simulate`: true states x_0..x_{T-1} and measurements y_0..y_{T-1}."""
+    """Output of :func:`simulate`: true states x_0..x_{T-1}, measurements y_0..y_{T-1}, and each
+    step's :class:`~jaxest.Status` bits: ``NONFINITE`` where the state or the measurement drawn
+    is NaN or infinite. Under ``jit`` the argument checks cannot see a covariance's values, and
+    an indefinite one gives NaN draws; a filter would then read a NaN measurement as a missing
+    one, without a word."""
 
     states: Float[Array, "T n"]
     observations: Float[Array, "T m"]
+    status: Int[Array, " T"]
 
     @property
     def y(self):
         return self.observations
+
+    @property
+    def ok(self) -> jax.Array:
+        """Whether every step drew finite values."""
+        return jnp.all(self.status == 0)
 
 
 def gaussian_noise(key, cov):
@@ -326,6 +337,8 @@ def simulate(
 
     Compiled as one program (``equinox.filter_jit``; ``num_steps``, the samplers and the model's
     functions are static), so a second call with arrays of the same shapes does not compile.
+    Covariances whose values are known are checked here (``ValueError``); under ``jit`` a bad
+    one shows in :attr:`Simulation.status` instead.
     """
     from jaxest._checks import check_matrix  # _checks imports this module
 
@@ -374,7 +387,7 @@ def _simulate(model, x0, num_steps: int, key, inputs, process_noise, measurement
         y = model.sample_observation(x, u, k, v)
         _, Q = model.process_noise(x, u, k)
         x_next = model.sample_transition(x, u, k, process_noise(kw, Q))
-        return x_next, (x, y)
+        return x_next, (x, y, finite_status(x, y))
 
-    _, (states, ys) = jax.lax.scan(body, x0, (jnp.arange(num_steps), keys, inputs))
-    return Simulation(states, ys)
+    _, (states, ys, status) = jax.lax.scan(body, x0, (jnp.arange(num_steps), keys, inputs))
+    return Simulation(states, ys, status)

@@ -173,6 +173,29 @@ def test_simulate_draws_a_singular_noise_and_names_bad_covariances():
             je.simulate(bad, start, 5, jax.random.key(0))
 
 
+def test_simulate_under_jit_flags_what_the_checks_cannot_see():
+    """Under ``jit`` an indefinite Q or R is a tracer the checks above cannot read: its draws are
+    NaN, and a NaN measurement would pass as a missing one. The simulation's status says so
+    from the first step each reaches; a valid model's is OK throughout."""
+    model, _, prior = good()
+    flip = jnp.diag(jnp.asarray([1.0, -1.0]))
+
+    @jax.jit
+    def status(Q, R):
+        sim = je.simulate(
+            je.LinearGaussian(model.F, model.H, Q, R), prior.mean, 6, jax.random.key(0)
+        )
+        return sim.status, sim.ok
+
+    steps, ok = status(model.Q, model.R)
+    assert bool(ok) and np.all(np.asarray(steps) == je.Status.OK)
+    steps, ok = status(model.Q, -model.R)  # every y is NaN
+    assert not bool(ok) and np.all(np.asarray(steps) == je.Status.NONFINITE)
+    steps, ok = status(flip * model.Q, model.R)  # NaN from x_1 on (x_0 is given)
+    assert not bool(ok)
+    np.testing.assert_array_equal(np.asarray(steps), [0] + [je.Status.NONFINITE] * 5)
+
+
 def test_simulate_names_an_initial_state_of_the_wrong_size():
     model, _, _ = good()  # it raised a TypeError from inside the traced scan
     with pytest.raises(ValueError, match=r"^x0: expected shape \(2,\)"):
