@@ -8,11 +8,13 @@ On a :class:`~jaxest.LinearGaussian` model each is an exact Kalman filter; on a
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest._checks import is_concrete
@@ -37,8 +39,15 @@ from jaxest.linalg import cho_solve_lower, chol_inverse, cholesky, inv_spd, sand
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.rts import NEEDED
 
-#: :func:`~jaxest.filters.fisher.has_density` of a stack of covariances, compiled once per shape
-_have_densities = jax.jit(jax.vmap(has_density))
+
+@functools.cache
+def _have_densities(shape: tuple[int, ...], dtype) -> jax.stages.Compiled:
+    """:func:`~jaxest.filters.fisher.has_density` of a stack of covariances of ``shape`` and
+    ``dtype``, compiled once (ahead of time, so that it runs on concrete arrays also inside a
+    caller's trace). Traced outside ``jax.ensure_compile_time_eval``, under which every constant
+    the trace builds (the unrolled Cholesky's index arrays) ran and compiled op by op: 20 small
+    programs on the first run of each shape."""
+    return jax.jit(jax.vmap(has_density)).lower(jax.ShapeDtypeStruct(shape, dtype)).compile()
 
 
 class KalmanFilter(AbstractGaussianFilter):
@@ -77,12 +86,11 @@ class KalmanFilter(AbstractGaussianFilter):
         if not (is_concrete(prior.cov) and is_concrete(model.Q)):
             return self  # under jit the rule's tangent is NaN at such a covariance instead
         n = jnp.shape(prior.cov)[-1]
-        with jax.ensure_compile_time_eval():  # evaluated now, also inside a caller's jit
-            covariances = jnp.concatenate(
-                [jnp.reshape(c, (-1, n, n)) for c in (prior.cov, model.Q)]
-            )
-            if bool(jnp.all(_have_densities(covariances))):
-                return self
+        covariances = np.concatenate(
+            [np.asarray(c).reshape(-1, n, n) for c in (prior.cov, model.Q)]
+        )
+        if np.all(np.asarray(_have_densities(covariances.shape, covariances.dtype)(covariances))):
+            return self
         return dataclasses.replace(self, closed_form_gradient=False)
 
     def derivative_fields(self, model) -> tuple[str, ...]:
