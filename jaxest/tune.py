@@ -12,6 +12,7 @@ e.g. a diagonal-only Cholesky fit, or one variance held fixed.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import equinox as eqx
@@ -102,6 +103,9 @@ def fit(
             line search's two branches and the first step), so it compiles about three times
             as long as Adam: worth it where its fewer steps save more (docs/performance.md).
         num_steps: optimiser steps.
+
+    The parametrisations, the steps and the fitted matrices are compiled as one program, with
+    the model's arrays concrete in its trace (as ``loss`` would see them called directly).
     """
     if not isinstance(params, dict):
         params = dict.fromkeys(params, "cholesky")
@@ -120,40 +124,56 @@ def fit(
     check_nonnegative_int("num_steps", num_steps)
     free = free or {}
     optimizer = optax.with_extra_args_support(optimizer or optax.adam(0.05))
-    theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}
     for path, mask in free.items():
-        if path not in theta0:
+        if path not in params:
             raise ValueError(f"free: {path!r} is not one of the fitted params {list(params)}")
-        if np.shape(mask) != theta0[path].shape:
+        unconstrained = functools.partial(to_unconstrained, parametrisation=params[path])
+        shape = jax.eval_shape(unconstrained, _get(model, path))
+        if np.shape(mask) != shape.shape:
             raise ValueError(
-                f"free[{path!r}]: expected a mask of shape {theta0[path].shape} (the "
+                f"free[{path!r}]: expected a mask of shape {shape.shape} (the "
                 f"{params[path]} parameter), got {np.shape(mask)}"
             )
-    masks = {p: jnp.asarray(free.get(p, jnp.ones_like(t)), t.dtype) for p, t in theta0.items()}
 
-    def build(theta):
-        out = model
-        for path, kind in params.items():
-            value = theta0[path] + masks[path] * (theta[path] - theta0[path])
-            out = eqx.tree_at(
-                lambda m, path=path: _get(m, path), out, from_unconstrained(value, kind)
+    def steps():
+        """The parametrisations, the optimiser's steps and the fitted matrices, compiled as one
+        program (outside ``jit`` the parametrisations ran op by op: 25 small programs besides
+        the steps'). The model's arrays stay concrete in its trace, as ``loss`` sees them."""
+        theta0 = {p: to_unconstrained(_get(model, p), k) for p, k in params.items()}
+        masks = {p: jnp.asarray(free.get(p, jnp.ones_like(t)), t.dtype) for p, t in theta0.items()}
+
+        def matrices(theta):
+            return {
+                path: from_unconstrained(
+                    theta0[path] + masks[path] * (theta[path] - theta0[path]), kind
+                )
+                for path, kind in params.items()
+            }
+
+        objective = lambda theta: loss(_with_matrices(model, matrices(theta)))
+        opt_state0 = optimizer.init(theta0)
+        value_and_grad = _value_and_grad(objective, opt_state0)
+
+        def body(carry, _):
+            theta, opt_state = carry
+            value, grads = value_and_grad(theta, state=opt_state)
+            updates, opt_state = optimizer.update(
+                grads, opt_state, theta, value=value, grad=grads, value_fn=objective
             )
-        return out
+            return (optax.apply_updates(theta, updates), opt_state), value
 
-    objective = lambda theta: loss(build(theta))
-    opt_state0 = optimizer.init(theta0)
-    value_and_grad = _value_and_grad(objective, opt_state0)
+        (theta, _), losses = jax.lax.scan(body, (theta0, opt_state0), None, num_steps)
+        return matrices(theta), losses
 
-    def body(carry, _):
-        theta, opt_state = carry
-        value, grads = value_and_grad(theta, state=opt_state)
-        updates, opt_state = optimizer.update(
-            grads, opt_state, theta, value=value, grad=grads, value_fn=objective
-        )
-        return (optax.apply_updates(theta, updates), opt_state), value
+    fitted, losses = jax.jit(steps)()
+    return FitResult(_with_matrices(model, fitted), losses)
 
-    (theta, _), losses = jax.lax.scan(body, (theta0, opt_state0), None, num_steps)
-    return FitResult(build(theta), losses)
+
+def _with_matrices(model, matrices: dict):
+    """``model`` with the matrix at each path of ``matrices`` (``"Q"``, ``"prior.cov"``...)."""
+    for path, matrix in matrices.items():
+        model = eqx.tree_at(lambda m, path=path: _get(m, path), model, matrix)
+    return model
 
 
 def _check_start(name: str, P, kind: str):

@@ -1,5 +1,7 @@
 """SPD parametrisations and gradient fitting."""
 
+import logging
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -94,6 +96,23 @@ def test_free_mask_holds_entries_fixed_and_supervised_loss_lowers_error():
     )
     assert float(result.model.R[0, 0]) == pytest.approx(float(wrong.R[0, 0]), rel=1e-12)
     assert loss(result.model) < loss(wrong)
+
+
+def test_fit_compiles_one_program(caplog):
+    """Parametrisations, steps and fitted matrices in one program: outside ``jit`` the
+    parametrisations and the final matrices ran op by op (26 programs for this fit)."""
+    rng = np.random.default_rng(5)
+    n = 7
+    model = je.LinearGaussian(0.9 * jnp.eye(n), jnp.asarray(rng.normal(size=(3, n))),
+                              0.1 * jnp.eye(n), 0.5 * jnp.eye(3))  # fmt: skip
+    prior = je.Gaussian(jnp.zeros(n), jnp.eye(n))
+    ys = jnp.asarray(rng.normal(size=(20, 3)))
+    loss = lambda m: -je.run(EKF(), m, ys, prior=prior).loglik
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        fitted = fit(model, loss, {"Q": "log_diagonal", "R": "cholesky"}, num_steps=3)
+    compiled = [r.getMessage() for r in caplog.records if "Compiling" in r.getMessage()]
+    assert len(compiled) == 1, compiled
+    assert fitted.losses[-1] < fitted.losses[0]
 
 
 def test_fit_rejects_unknown_parameters():
