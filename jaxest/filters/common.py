@@ -84,10 +84,15 @@ def joseph_update(x, P, meas: Measurement):
     return x + mv(K, meas.innovation), P_post, S, S_chol, whitened
 
 
+def predicted_cov(P, F, G, Q):
+    """Eq 7: P(k+1|k) = F P(k|k) F^T + G Q G^T."""
+    return symmetrize(sandwich(F, P) + sandwich(G, Q))
+
+
 def covariance_predict(model, x, P, u, k):
-    """Eqs 6-7: x(k+1|k) = f(x(k|k), u_k), P(k+1|k) = F P F^T + G Q G^T."""
+    """Eqs 6-7: x(k+1|k) = f(x(k|k), u_k), P(k+1|k) (:func:`predicted_cov`)."""
     x_next, F, G, Q = model.transition(x, u, k)
-    return x_next, symmetrize(sandwich(F, P) + sandwich(G, Q))
+    return x_next, predicted_cov(P, F, G, Q)
 
 
 def covariance_step(model, x, P, y, u, k):

@@ -31,11 +31,12 @@ from jaxest.filters.common import (
     covariance_step,
     gaussian_loglik,
     masked_measurement,
+    predicted_cov,
     step_status,
     whitened_innovation,
 )
 from jaxest.filters.fisher import fisher_loglik, has_density
-from jaxest.linalg import cho_solve_lower, chol_inverse, cholesky, inv_spd, sandwich, symmetrize
+from jaxest.linalg import cho_solve_lower, chol_inverse, cholesky, inv_spd, symmetrize
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.rts import NEEDED
 
@@ -45,7 +46,7 @@ def _have_densities(shape: tuple[int, ...], dtype) -> jax.stages.Compiled:
     """:func:`~jaxest.filters.fisher.has_density` of a stack of covariances of ``shape`` and
     ``dtype``, compiled once (ahead of time, so that it runs on concrete arrays also inside a
     caller's trace). Traced outside ``jax.ensure_compile_time_eval``, under which every constant
-    the trace builds (the unrolled Cholesky's index arrays) ran and compiled op by op: 20 small
+    the trace builds (the unrolled Cholesky's index arrays) ran and compiled op by op: 21 small
     programs on the first run of each shape."""
     return jax.jit(jax.vmap(has_density)).lower(jax.ShapeDtypeStruct(shape, dtype)).compile()
 
@@ -262,7 +263,7 @@ class InformationFilter(AbstractGaussianFilter):
         A = symmetrize(F_inv_T @ upd.info_post @ F_inv_T.T)
         inner = inv_spd(Q) + G.T @ A @ G
         Y_next = symmetrize(A - A @ G @ cho_solve_lower(cholesky(inner), G.T @ A))
-        P_next = symmetrize(sandwich(F, upd.P_post) + sandwich(G, Q))  # its covariance form
+        P_next = predicted_cov(upd.P_post, F, G, Q)  # its covariance form
         status = step_status(x_next, Y_next, upd.loglik, cov_factor=upd.post_chol) | upd.status
         status = status | gap_status(inverse_gap(Y_next, P_next))
         out = StepOutput(x, P, upd.x_post, upd.P_post, meas.innovation, upd.S, upd.loglik, status)
