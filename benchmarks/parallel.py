@@ -28,7 +28,7 @@ jax.config.update("jax_enable_x64", True)
 import jaxest.scan  # noqa: E402
 from jaxest.progress import Progress  # noqa: E402
 from jaxest.report import device_name, emit_json, write_json  # noqa: E402
-from jaxest.studies.parallel import GRID, QUICK_GRID, grid_points, speed_rows  # noqa: E402
+from jaxest.studies.parallel import GRID, QUICK_GRID, grid_weights, speed_rows  # noqa: E402
 
 
 def main(argv=None):
@@ -50,7 +50,8 @@ def main(argv=None):
     def report():
         return {"device": device_name(), "chunks": jaxest.scan.CHUNKS, "rows": rows}
 
-    with Progress("parallel", total=grid_points(grid)) as progress:
+    weights = grid_weights(grid)
+    with Progress("parallel", total=len(weights), weights=weights) as progress:
         for label, new in speed_rows(**grid):
             rows += new
             progress.advance(label)

@@ -12,10 +12,17 @@ import time
 
 
 class Progress:
-    """``with Progress("smf-fdi", total=3) as p: ...; p.advance("L=0 done")``."""
+    """``with Progress("smf-fdi", total=3) as p: ...; p.advance("L=0 done")``.
 
-    def __init__(self, label: str, total: int, stream=None):
+    ``weights``: each step's expected cost, in order (``total`` of them), for a study whose
+    steps differ in cost: the bar and the estimate of what remains then count cost done, not
+    steps done. Equal by default."""
+
+    def __init__(self, label: str, total: int, stream=None, weights=None):
         self.label, self.total, self.done = label, max(int(total), 1), 0
+        self.weights = [1.0] * self.total if weights is None else [float(w) for w in weights]
+        if len(self.weights) != self.total or not all(w > 0 for w in self.weights):
+            raise ValueError(f"weights: {self.total} positive costs expected, got {weights!r}")
         self.stream = stream or sys.stderr
         self.start = time.perf_counter()
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
@@ -34,17 +41,21 @@ class Progress:
         self.done = min(self.done + steps, self.total)
         self._show(message)
 
+    def fraction(self) -> float:
+        """The share of the expected cost done."""
+        return sum(self.weights[: self.done]) / sum(self.weights)
+
     def remaining(self, elapsed: float) -> float | None:
-        """Seconds left if the steps still to come take as long as the finished ones did on
-        average (None before the first step). The steps of a study differ, so it is a guide."""
+        """Seconds left if the steps still to come cost, per unit of weight, what the finished
+        ones did (None before the first step): a guide, since the weights are estimates."""
         if self.done == 0:
             return None
-        return elapsed * (self.total - self.done) / self.done
+        return elapsed * (1 - self.fraction()) / self.fraction()
 
     def _show(self, message):
         elapsed = time.perf_counter() - self.start
         width = 24
-        filled = int(width * self.done / self.total)
+        filled = int(width * self.fraction())
         bar = "#" * filled + "-" * (width - filled)
         left = self.remaining(elapsed)
         estimate = "" if left is None or self.done == self.total else f" ~{left:.0f}s left"

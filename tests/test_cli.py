@@ -85,6 +85,22 @@ def test_progress_estimates_what_remains_from_the_steps_done():
     assert "s left one" in lines[1] and "left" not in lines[0] and "left" not in lines[2]
 
 
+def test_progress_weighs_steps_by_their_expected_cost():
+    import io
+
+    from jaxest.progress import Progress
+
+    stream = io.StringIO()
+    with Progress("study", total=3, stream=stream, weights=[1, 1, 6]) as progress:
+        progress.advance("cheap")
+        assert progress.remaining(10.0) == 70.0  # 7 units to go at 10 s each, not 2 steps
+        assert progress.fraction() == 0.125
+    assert "[###---------------------] 1/3" in stream.getvalue()  # the bar by cost
+    for weights in ([1, 2], [1, 0, 2]):
+        with pytest.raises(ValueError, match="^weights: 3 positive costs"):
+            Progress("study", total=3, stream=stream, weights=weights)
+
+
 def test_reproduce_estimates_from_the_last_run_in_the_same_mode(tmp_path):
     index = {
         "filters": {"seconds": 12.5, "dir": "x", "quick": True},

@@ -14,10 +14,15 @@ from jaxest.systems.flight import N_KIN
 
 
 @pytest.mark.slow
-def test_quick_study_writes_the_summary(tmp_path):
+def test_quick_study_writes_the_summary(tmp_path, capsys):
     data = flight_data.find_data_dir()
     with jax.enable_x64(True):
         svd_ekf.run(tmp_path, runs=3, seed=0, quick=True, options={"data": data})
+    # the progress display's weights (step_weights) are one per step the study takes
+    done = [line.split("] ")[2].split()[0] for line in capsys.readouterr().err.splitlines()
+            if line.startswith("[svd-ekf]")]  # fmt: skip
+    total = len(done) - 1
+    assert done == [f"{k}/{total}" for k in range(total + 1)]
     out = tmp_path / "svd-ekf"
     summary = json.loads((out / "summary.json").read_text())
     assert summary["conditions"]

@@ -109,17 +109,30 @@ GRID = {"states": (4, 20), "lengths": (100, 1_000, 10_000, 100_000),
 QUICK_GRID = {"states": (4,), "lengths": (100, 1_000), "dtypes": ("float64", "float32")}
 
 
-def grid_points(grid: dict) -> int:
-    """How many (n, T, dtype) configurations ``grid`` holds (one progress step each)."""
-    return len(grid["states"]) * len(grid["lengths"]) * len(grid["dtypes"])
+def _configurations(states, lengths, dtypes):
+    """(n, T, dtype, repeats) of the grid in the order measured: best of 3 runs after a warm-up
+    run; at T >= 10^5 the single first run after compiling, which takes up to 45 s on a 2-core
+    CPU."""
+    for n, T, dtype in itertools.product(states, lengths, dtypes):
+        yield n, T, dtype, 0 if T >= 100_000 else 3
+
+
+def expected_seconds(n: int, T: int, repeats: int) -> float:
+    """A guess at one grid point's seconds on a 2-core CPU, the progress display's weight:
+    about 4 s compiling the three programs, then 1 + ``repeats`` runs of the three forms at about
+    30 us per time step for n = 4, growing as n^1.5. Fitted to the published run (2026-11-29;
+    grid points of 3.5-9 s at n = 4 and 4.4-44 s at n = 20, the last at T = 10^5)."""
+    return 4.0 + (1 + repeats) * T * 3e-5 * (n / 4) ** 1.5
+
+
+def grid_weights(grid: dict) -> list[float]:
+    """:func:`expected_seconds` of each (n, T, dtype) configuration of ``grid``, in order."""
+    return [expected_seconds(n, T, repeats) for n, T, _, repeats in _configurations(**grid)]
 
 
 def speed_rows(states, lengths, dtypes):
-    """:func:`timing` over the grid (best of 3 runs after a warm-up run; at T >= 10^5 the single
-    first run after compiling, which takes up to 45 s on a 2-core CPU), one (label, rows) per
-    (n, T, dtype) as it is measured."""
-    for n, T, dtype in itertools.product(states, lengths, dtypes):
-        repeats = 0 if T >= 100_000 else 3
+    """:func:`timing` over the grid, one (label, rows) per (n, T, dtype) as it is measured."""
+    for n, T, dtype, repeats in _configurations(states, lengths, dtypes):
         yield f"n={n} T={T} {dtype}", timing(n, T, jnp.dtype(dtype), repeats)
 
 
@@ -200,6 +213,8 @@ def _crossover_text(rows: list[dict], device: str) -> str:
 # --- EM against gradient fitting ----------------------------------------------------------
 
 
+#: the EM-against-gradient part's seconds in the published run, the progress display's weight
+EM_SECONDS = 14.0
 EM_TRUE_F = np.array([[0.9, 0.2, 0, 0], [-0.2, 0.9, 0, 0], [0, 0, 0.6, 0.3], [0, 0, 0, -0.5]])
 
 
@@ -299,7 +314,8 @@ def em_versus_gradient(T: int, em_iters: int, grad_steps: int, seed: int) -> dic
 def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -> dict:
     out_dir = Path(out) / "parallel"
     grid = QUICK_GRID if quick else GRID
-    with Progress("parallel", total=grid_points(grid) + 1) as progress:
+    weights = [*grid_weights(grid), EM_SECONDS]
+    with Progress("parallel", total=len(weights), weights=weights) as progress:
         start = time.perf_counter()
         speed = speed_grid(**grid, progress=progress)
         speed_s = time.perf_counter() - start

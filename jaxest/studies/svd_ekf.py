@@ -917,9 +917,8 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     air_data = [c for c in conditions if c[2] == "float64"]
     air_data_label = f"air-data start, u, v, w {AIR_DATA_KINEMATIC_STD[0]:g} m/s"
     study_label = f"INS start, u, v, w {INS_KINEMATIC_STD[0]:g} m/s"
-    total = len(conditions) * len(FILTERS) + len(own_model) + len(air_data) + len(figures)
-    total += (3 if quick else 7) if data_dir else 0
-    with Progress(NAME, total) as progress:
+    weights = step_weights(conditions, own_model, air_data, figures, quick, data_dir is not None)
+    with Progress(NAME, len(weights), weights=weights) as progress:
         truths = {}
         for maneuver, rate, dtype_name in conditions:
             dtype = jnp.dtype(dtype_name)
@@ -987,6 +986,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
             summary["tuning"] = {
                 "simulated": tune_simulated(key, truths["elevator", 32], tune_steps)
             }
+            progress.advance("simulated tuning")
         if data_dir is not None:
             summary["real_data"] = real_data_part(out, data_dir, quick, tune_steps, progress)
             summary["tuning"]["real"] = summary["real_data"].pop("tuning")
@@ -995,6 +995,38 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     write_tables(out, summary, tables)
     write_json(out / "summary.json", summary)
     return summary
+
+
+#: seconds of the study's steps in a fresh-clone ``make reproduce`` (2-core CPU, beside another
+#: study, 2026-11-29), the progress display's weights: a filter's runs take its entry per 10 Hz
+#: of rate, and its first condition at a rate and dtype "compile" more
+STEP_SECONDS = {"ekf": 1.3, "svd_ekf": 3.4, "svd_improved": 3.2, "compile": 5.0,
+                "own-model simulation": 6.0, "figure": 8.0, "simulated tuning": 39.0,
+                "sensor delays": 17.0, "real-data tuning": 46.0, "ATTAS maneuver": 4.0,
+                "ATTAS estimates": 25.0, "HFB-320": 11.0}  # fmt: skip
+
+
+def step_weights(conditions, own_model, air_data, figures, quick, real_data) -> list[float]:
+    """The expected seconds (:data:`STEP_SECONDS`) of :func:`run`'s progress steps, in order."""
+    weights, compiled = [], set()
+    for maneuver, rate, dtype in conditions:
+        for fname in FILTERS:
+            first = (fname, rate, dtype) not in compiled
+            compiled.add((fname, rate, dtype))
+            weights.append(rate / 10 * STEP_SECONDS[fname] + first * STEP_SECONDS["compile"])
+        if (maneuver, rate, dtype) in own_model:
+            weights.append(STEP_SECONDS["own-model simulation"])
+        if (maneuver, rate, dtype) in air_data:  # one EKF Monte Carlo
+            weights.append(rate / 10 * STEP_SECONDS["ekf"])
+    weights += [STEP_SECONDS["figure"]] * len(figures)
+    if not quick:
+        weights.append(STEP_SECONDS["simulated tuning"])
+    if real_data:  # as real_data_part advances
+        steps = ["sensor delays"] + ["real-data tuning"] * (not quick)
+        steps += ["ATTAS maneuver"] * (1 if quick else len(flight_data.ATTAS_FILES))
+        steps += ["ATTAS estimates"] + ["HFB-320"] * (not quick)
+        weights += [STEP_SECONDS[step] for step in steps]
+    return weights
 
 
 def tune_simulated(key, truth: sim.TrueFlight, steps):
