@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+import optimistix as optx
 import pytest
 
 import jaxest as je
@@ -65,7 +66,58 @@ def test_maximum_likelihood_recovers_q_and_r_from_tenfold_error():
         num_steps=400,
     )
     assert result.losses[-1] < result.losses[0]
-    # compare with the exact maximiser found by a fine grid over (log q, log r)
+    assert_at_grid_maximum(result.model, truth, prior, sims)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_optimistix_minimiser_reaches_the_maximum_with_one_copy_of_the_gradient(dtype):
+    truth64, prior64, sims = scalar_problem()
+    truth, prior, ys = jax.tree.map(lambda a: a.astype(dtype), (truth64, prior64, sims.y))
+    wrong = je.LinearGaussian(truth.F, truth.H, 10 * truth.Q, truth.R / 10)
+    traces = []
+    nll = neg_loglik(KalmanFilter(), ys, prior=prior)
+
+    def loss(model):  # counts the times fit traces it
+        traces.append(1)
+        return nll(model)
+
+    params = {"Q": "cholesky", "R": "log_diagonal"}
+    result = fit(wrong, loss, params, optimizer=optx.LBFGS(rtol=1e-6, atol=1e-6), num_steps=60)
+    assert len(traces) == 1  # one evaluation per step, its gradient in the accepted branch
+    assert result.losses.dtype == dtype and result.model.Q.dtype == dtype
+    assert result.losses[0] == pytest.approx(float(nll(wrong)), rel=1e-5)  # the start
+    assert np.all(np.diff(np.asarray(result.losses)) <= 0)  # accepted points only
+    assert_at_grid_maximum(result.model, truth64, prior64, sims)
+    traces.clear()
+    # optax's line search steps float32 parameters in float64 (under x64): the model was
+    # float64 in its trials, and the loss refused the float32 prior
+    result = fit(wrong, loss, params, optimizer=optax.lbfgs(), num_steps=5)
+    assert len(traces) == 3  # the first step and the zoom line search's two branches
+    assert result.losses.dtype == dtype and result.model.Q.dtype == dtype
+
+
+def test_minimiser_stops_at_its_tolerances():
+    """A quartic, which BFGS approaches slowly: with loose tolerances the minimiser stops, as
+    ``optimistix.minimise`` would, and the remaining steps hold its point."""
+    model = je.LinearGaussian(jnp.eye(2), jnp.eye(2), jnp.eye(2), jnp.eye(2))
+    target = jnp.asarray([[2.0, 0.5], [-1.0, 3.0]])
+    loss = lambda m: jnp.sum((m.F - target) ** 4)
+    params = {"F": "unconstrained"}
+    loose = fit(model, loss, params, optimizer=optx.BFGS(rtol=1e-2, atol=1e-2), num_steps=60)
+    losses = np.asarray(loose.losses)
+    stopped = int(np.argmax(losses == losses[-1]))
+    assert 0 < stopped < 30 and losses[-1] < 1e-2 * losses[0]
+    tight = fit(model, loss, params, optimizer=optx.BFGS(rtol=1e-9, atol=1e-9), num_steps=60)
+    assert tight.losses[-1] < 1e-3 * losses[-1]  # it would have gone on
+    with pytest.raises(ValueError, match="^optimizer: expected an optax"):
+        fit(model, loss, params, optimizer="lbfgs")
+    with pytest.raises(ValueError, match="^optimizer: NelderMead keeps no accepted point's loss"):
+        fit(model, loss, params, optimizer=optx.NelderMead(rtol=1e-3, atol=1e-3))
+
+
+def assert_at_grid_maximum(fitted, truth, prior, sims):
+    """``fitted``'s Q and R are the likelihood's maximiser found by a fine grid over
+    (log q, log r), within its spacing."""
     grid = jnp.linspace(-1.2, 1.2, 61)
     nll = jax.jit(
         jax.vmap(
@@ -79,8 +131,8 @@ def test_maximum_likelihood_recovers_q_and_r_from_tenfold_error():
         )
     )(grid, grid)
     i, j = np.unravel_index(np.argmin(nll), nll.shape)
-    np.testing.assert_allclose(np.log(result.model.Q[0, 0] / truth.Q[0, 0]), grid[i], atol=0.05)
-    np.testing.assert_allclose(np.log(result.model.R[0, 0] / truth.R[0, 0]), grid[j], atol=0.05)
+    np.testing.assert_allclose(np.log(fitted.Q[0, 0] / truth.Q[0, 0]), grid[i], atol=0.05)
+    np.testing.assert_allclose(np.log(fitted.R[0, 0] / truth.R[0, 0]), grid[j], atol=0.05)
 
 
 def test_free_mask_holds_entries_fixed_and_supervised_loss_lowers_error():
