@@ -32,6 +32,10 @@ from jaxest._checks import (
 from jaxest._run import SaveAt, run
 
 PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
+#: L-BFGS for a fit of a fixed number of steps (the studies' tuning): optimistix's, with one copy
+#: of the loss's gradient in the program (:func:`fit`), and tolerances below what a float64 fit
+#: reaches, so that the steps decide where it stops
+FIXED_STEPS_LBFGS = optx.LBFGS(rtol=1e-10, atol=1e-10)
 
 
 def _unknown(parametrisation) -> ValueError:
@@ -108,9 +112,15 @@ def fit(
             methods (``optax.lbfgs()``) work too, but hold three (the line search's two branches
             and the first step) and compile about three times as long: on the svd-ekf study's
             23-state flight model, 40 steps of either reach the same likelihood, in 19 s with
-            ``optimistix.LBFGS`` against 33 s (8.6 against 22 s compiling;
-            docs/performance.md).
-        num_steps: optimiser steps. A minimiser stops moving once it meets its tolerances.
+            ``optimistix.LBFGS`` against 30 s (8.9 against 20 s compiling). optimistix's
+            line search only backtracks (Armijo) where optax's zooms to the Wolfe conditions,
+            so on hard or rugged losses optax can get further in as many steps: the parallel
+            study's fit of F, H, Q, R and notebook 06's UKF likelihood keep it
+            (docs/performance.md).
+        num_steps: optimiser steps. A minimiser's step is one evaluation of the loss, where an
+            optax line search's step may take several: from the same start it needs more steps
+            (the sigma-point study's quick tuning, 5 runs: 25 for what optax reaches in 15). It
+            stops moving once it meets its tolerances.
 
     The parametrisations, the steps and the fitted matrices are compiled as one program, with
     the model's arrays concrete in its trace (as ``loss`` would see them called directly).

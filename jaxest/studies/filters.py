@@ -19,7 +19,6 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 import jaxest as je
 from jaxest.filters import EKF, SVDEKF, ImprovedSVDKF, InformationFilter, KalmanFilter, SquareRootKF
@@ -30,6 +29,7 @@ from jaxest.report import markdown_table, write_json
 from jaxest.systems import tracking
 from jaxest.systems.ill_conditioned import posterior_error
 from jaxest.tune import (
+    FIXED_STEPS_LBFGS,
     fit,
     log_variance_standard_errors,
     log_variances,
@@ -72,15 +72,22 @@ def rmse(model, ys, states, prior) -> float:
     return float(jnp.sqrt(jnp.mean((means - states) ** 2)))
 
 
-def tuning(runs: int, num_steps: int, seed: int, fit_steps: int) -> dict:
-    """Fit Q, R from a 10x wrong start by ML and by supervised loss; compare with the truth."""
+def tuning(
+    runs: int,
+    num_steps: int,
+    seed: int,
+    fit_steps: int,
+    optimizer=FIXED_STEPS_LBFGS,
+) -> dict:
+    """Fit Q, R from a 10x wrong start by ML and by supervised loss; compare with the truth.
+    ``fit_steps`` L-BFGS steps reach what 3000 Adam steps do; optimistix's compiles the
+    gradient once (docs/performance.md)."""
     truth, prior = tracking.model(), tracking.prior()
     simulate = lambda key: je.simulate(truth, prior, num_steps, key)
     train = monte_carlo(simulate, jax.random.PRNGKey(seed), runs)
     test = monte_carlo(simulate, jax.random.PRNGKey(seed + 1), runs)
     wrong = je.LinearGaussian(truth.F, truth.H, 10.0 * truth.Q, truth.R / 10.0)
     params = {"Q": "log_diagonal", "R": "log_diagonal"}
-    optimizer = optax.lbfgs()  # 60 L-BFGS steps reach what 3000 Adam steps do
     fits = {
         "ml": fit(
             wrong,

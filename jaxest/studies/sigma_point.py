@@ -43,7 +43,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 import jaxest as je
 from jaxest.filters import (
@@ -62,7 +61,13 @@ from jaxest.progress import Progress
 from jaxest.report import markdown_table, timed_call, write_json
 from jaxest.studies import svd_ekf
 from jaxest.systems import bearings, duffing, flight_sim
-from jaxest.tune import fit, log_variance_standard_errors, log_variances, neg_loglik
+from jaxest.tune import (
+    FIXED_STEPS_LBFGS,
+    fit,
+    log_variance_standard_errors,
+    log_variances,
+    neg_loglik,
+)
 
 NAME = "sigma-point"
 DESCRIPTION = "sigma-point, iterated and particle filters on Duffing, flight and bearings-only"
@@ -239,7 +244,7 @@ def svd_form_difference(means: dict, cov0, runs: int = 5) -> dict:
     return out
 
 
-def tune_duffing(runs: int, T: int, seed: int, steps: int) -> dict:
+def tune_duffing(runs: int, T: int, seed: int, steps: int, optimizer=FIXED_STEPS_LBFGS) -> dict:
     """ML fit of diag Q, diag R through the UKF from Q x 10, R / 10; z-scores of the fitted
     log-variances against the truth with standard errors from the observed Fisher information."""
     truth, prior = duffing_model(jnp.float64), duffing_prior(jnp.float64)
@@ -247,7 +252,7 @@ def tune_duffing(runs: int, T: int, seed: int, steps: int) -> dict:
     start = duffing_model(jnp.float64, q_scale=10.0, r_scale=0.1)
     params = {"Q": "log_diagonal", "R": "log_diagonal"}
     loss = neg_loglik(UKF(), ys, prior=prior)
-    result = fit(start, loss, params, optimizer=optax.lbfgs(), num_steps=steps)
+    result = fit(start, loss, params, optimizer=optimizer, num_steps=steps)
     se = log_variance_standard_errors(result.model, loss, ys.shape[0] * ys.shape[1])
     return {
         "runs": runs,
@@ -388,7 +393,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
                 if dtype == "float64":
                     summary["svd_form_difference"][name] = svd_form_difference(means, problem.cov0)
                 progress.advance(f"{name} {dtype}")
-        summary["tuning"] = tune_duffing(5 if quick else 20, 100, seed + 7, 15 if quick else 40)
+        summary["tuning"] = tune_duffing(5 if quick else 20, 100, seed + 7, 30 if quick else 40)
         progress.advance("tuning")
         counts = PARTICLE_COUNTS[:2] if quick else PARTICLE_COUNTS
         summary["pf_loglik"] = pf_loglik_convergence(50, 10 if quick else 40, seed + 9, counts)

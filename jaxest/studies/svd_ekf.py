@@ -28,7 +28,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from jaxest._priors import Gaussian
 from jaxest._run import run as run_filter
@@ -42,7 +41,7 @@ from jaxest.setmembership.fdi import chi_square_threshold
 from jaxest.smoothers import SmootherResult, rts_smooth
 from jaxest.systems import flight, flight_data, flight_sim as sim
 from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
-from jaxest.tune import fit
+from jaxest.tune import FIXED_STEPS_LBFGS, fit
 
 NAME = "svd-ekf"
 DESCRIPTION = "SVD-EKF flight state & sensor-parameter estimation (simulated + ATTAS/HFB-320 data)"
@@ -853,7 +852,17 @@ class NoiseLevels(eqx.Module):
 
 
 def tune_noise(
-    data_ys, inputs, prior, dt, input_std, output_std, lever_arms, steps, *, tune_r=True
+    data_ys,
+    inputs,
+    prior,
+    dt,
+    input_std,
+    output_std,
+    lever_arms,
+    steps,
+    *,
+    tune_r=True,
+    optimizer=FIXED_STEPS_LBFGS,
 ):
     """Maximise the SVD-EKF log-likelihood over the 6 input noise variances and, if ``tune_r``, the
     6 output noise variances (log-diagonal parameters, ``steps`` L-BFGS steps of
@@ -868,7 +877,7 @@ def tune_noise(
         jnp.diag(jnp.asarray(input_std) ** 2), jnp.diag(jnp.asarray(output_std) ** 2)
     )
     params = {"Qc": "log_diagonal", "R": "log_diagonal"} if tune_r else {"Qc": "log_diagonal"}
-    fitted = fit(start, loss, params, optimizer=optax.lbfgs(), num_steps=steps)
+    fitted = fit(start, loss, params, optimizer=optimizer, num_steps=steps)
     losses = np.append(np.asarray(fitted.losses), float(loss(fitted.model)))
     std = lambda cov: np.sqrt(np.diagonal(np.asarray(cov)))
     return std(fitted.model.Qc), std(fitted.model.R), list(-losses * n_obs)
@@ -1029,7 +1038,7 @@ def step_weights(conditions, own_model, air_data, figures, quick, real_data) -> 
     return weights
 
 
-def tune_simulated(key, truth: sim.TrueFlight, steps):
+def tune_simulated(key, truth: sim.TrueFlight, steps, **fit_options):
     """ML tuning on one simulated flight (``truth``) whose true noise is twice the nominal level,
     starting from the nominal level: the tuned values should move towards the truth."""
     rate = truth.rate_hz
@@ -1038,7 +1047,7 @@ def tune_simulated(key, truth: sim.TrueFlight, steps):
     ys, inputs, mean0, _ = (a[0] for a in batch)
     prior = Gaussian(mean0, prior_cov(jnp.float64, INS_KINEMATIC_STD))
     in_std, out_std, hist = tune_noise(ys, inputs, prior, 1.0 / rate, sim.INPUT_STD,
-                                       sim.OUTPUT_STD, sim.LEVER_ARMS, steps)  # fmt: skip
+                                       sim.OUTPUT_STD, sim.LEVER_ARMS, steps, **fit_options)  # fmt: skip
     return {
         "true_noise": noise_dict(2 * sim.INPUT_STD, 2 * sim.OUTPUT_STD),
         "initial_noise": noise_dict(sim.INPUT_STD, sim.OUTPUT_STD),
