@@ -1010,8 +1010,8 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
 #: study, 2026-11-29), the progress display's weights: a filter's runs take its entry per 10 Hz
 #: of rate, and its first condition at a rate and dtype "compile" more
 STEP_SECONDS = {"ekf": 1.3, "svd_ekf": 3.4, "svd_improved": 3.2, "compile": 5.0,
-                "own-model simulation": 6.0, "figure": 8.0, "simulated tuning": 39.0,
-                "sensor delays": 17.0, "real-data tuning": 46.0, "ATTAS maneuver": 4.0,
+                "own-model simulation": 6.0, "figure": 8.0, "simulated tuning": 18.0,
+                "sensor delays": 18.0, "real-data tuning": 24.0, "ATTAS maneuver": 4.0,
                 "ATTAS estimates": 25.0, "HFB-320": 11.0}  # fmt: skip
 
 
