@@ -108,11 +108,12 @@ def fit(
             minimiser such as ``optimistix.LBFGS(rtol=1e-8, atol=1e-8)``. A minimiser's step
             evaluates the loss once (its gradient where the line search accepts the point), so
             the compiled program holds one copy of the loss's gradient (descent-and-search
-            minimisers: ``LBFGS``, ``BFGS``, ``NonlinearCG``, ``GradientDescent``). optax's line-search
-            methods (``optax.lbfgs()``) work too, but hold three (the line search's two branches
-            and the first step) and compile about three times as long: on the svd-ekf study's
-            23-state flight model, 40 steps of either reach the same likelihood, in 19 s with
-            ``optimistix.LBFGS`` against 30 s (8.9 against 20 s compiling). optimistix's
+            minimisers: ``LBFGS``, ``BFGS``, ``NonlinearCG``, ``GradientDescent``). optax's
+            line-search methods (``optax.lbfgs()``) work too, but hold three (the line search's
+            two branches and the first step) and compile about twice as long: on the svd-ekf
+            study's 23-state flight model, 40 steps of either reach the same likelihood, in 23 s
+            with ``optimistix.LBFGS`` against 35 s (10 against 24 s compiling;
+            ``benchmarks/fit_optimizers.py``). optimistix's
             line search only backtracks (Armijo) where optax's zooms to the Wolfe conditions,
             so on hard or rugged losses optax can get further in as many steps: the parallel
             study's fit of F, H, Q, R and notebook 06's UKF likelihood keep it
@@ -141,7 +142,7 @@ def fit(
         _check_start(f"params[{path!r}]", P, kind)
     check_nonnegative_int("num_steps", num_steps)
     free = free or {}
-    optimizer = optimizer or optax.adam(0.05)
+    optimizer = optax.adam(0.05) if optimizer is None else optimizer
     if not isinstance(optimizer, (optax.GradientTransformation, optx.AbstractMinimiser)):
         raise ValueError(
             "optimizer: expected an optax GradientTransformation or an optimistix minimiser, "
