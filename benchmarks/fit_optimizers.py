@@ -32,14 +32,12 @@ def one(fit: str, optimizer_name: str) -> dict:
 
     xla_flags.add(xla_flags.FASTER_COMPILATION)  # as the studies compile
     jax.config.update("jax_enable_x64", True)
-    from jax._src import monitoring
-
     from jaxest.studies import filters, parallel, sigma_point, svd_ekf
     from jaxest.systems import flight_sim
     from jaxest.tune import FIXED_STEPS_LBFGS
 
     compile_s = []
-    monitoring.register_event_duration_secs_listener(
+    jax.monitoring.register_event_duration_secs_listener(
         lambda name, secs, **_: (
             compile_s.append(secs) if name == "/jax/core/compile/backend_compile_duration" else None
         )

@@ -51,7 +51,7 @@ def main(argv=None):
         return {"device": device_name(), "chunks": jaxest.scan.CHUNKS, "rows": rows}
 
     weights = grid_weights(grid)
-    with Progress("parallel", total=len(weights), weights=weights) as progress:
+    with Progress("parallel", weights=weights) as progress:
         for label, new in speed_rows(**grid):
             rows += new
             progress.advance(label)

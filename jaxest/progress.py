@@ -14,11 +14,14 @@ import time
 class Progress:
     """``with Progress("smf-fdi", total=3) as p: ...; p.advance("L=0 done")``.
 
-    ``weights``: each step's expected cost, in order (``total`` of them), for a study whose
-    steps differ in cost: the bar and the estimate of what remains then count cost done, not
-    steps done. Equal by default."""
+    ``weights``: each step's expected cost, in order (``total`` defaults to their number), for
+    a study whose steps differ in cost: the bar and the estimate of what remains then count
+    cost done, not steps done. Equal by default."""
 
-    def __init__(self, label: str, total: int, stream=None, weights=None):
+    def __init__(self, label: str, total: int | None = None, stream=None, weights=None):
+        if total is None and weights is None:
+            raise ValueError("total: give the number of steps, or their weights")
+        total = len(weights) if total is None else total
         self.label, self.total, self.done = label, max(int(total), 1), 0
         self.weights = [1.0] * self.total if weights is None else [float(w) for w in weights]
         if len(self.weights) != self.total or not all(w > 0 for w in self.weights):

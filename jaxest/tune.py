@@ -14,13 +14,13 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-import optimistix as optx
 
 from jaxest._checks import (
     check_matrix,
@@ -31,11 +31,28 @@ from jaxest._checks import (
 )
 from jaxest._run import SaveAt, run
 
+if TYPE_CHECKING:
+    import optimistix as optx
+
 PARAMETRISATIONS = ("cholesky", "log_diagonal", "unconstrained")
-#: L-BFGS for a fit of a fixed number of steps (the studies' tuning): optimistix's, with one copy
-#: of the loss's gradient in the program (:func:`fit`), and tolerances below what a float64 fit
-#: reaches, so that the steps decide where it stops
-FIXED_STEPS_LBFGS = optx.LBFGS(rtol=1e-10, atol=1e-10)
+
+
+def __getattr__(name: str):
+    """``FIXED_STEPS_LBFGS``: L-BFGS for a fit of a fixed number of steps (the studies'
+    tuning): optimistix's, with one copy of the loss's gradient in the program (:func:`fit`),
+    and tolerances below what a float64 fit reaches, so that the steps decide where it stops.
+    Made on first use: importing optimistix takes about 0.12 s, which ``import jaxest`` would
+    otherwise pay every time."""
+    if name == "FIXED_STEPS_LBFGS":
+        return _fixed_steps_lbfgs()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+@functools.cache
+def _fixed_steps_lbfgs():
+    import optimistix as optx
+
+    return optx.LBFGS(rtol=1e-10, atol=1e-10)
 
 
 def _unknown(parametrisation) -> ValueError:
@@ -143,7 +160,8 @@ def fit(
     check_nonnegative_int("num_steps", num_steps)
     free = free or {}
     optimizer = optax.adam(0.05) if optimizer is None else optimizer
-    if not isinstance(optimizer, (optax.GradientTransformation, optx.AbstractMinimiser)):
+    minimiser = _is_minimiser(optimizer)
+    if not (minimiser or isinstance(optimizer, optax.GradientTransformation)):
         raise ValueError(
             "optimizer: expected an optax GradientTransformation or an optimistix minimiser, "
             f"got {type(optimizer).__name__}"
@@ -177,14 +195,21 @@ def fit(
             }
 
         objective = lambda theta: loss(_with_matrices(model, matrices(theta)))
-        minimise = (
-            _minimiser_steps if isinstance(optimizer, optx.AbstractMinimiser) else _optax_steps
-        )
+        minimise = _minimiser_steps if minimiser else _optax_steps
         theta, losses = minimise(optimizer, objective, theta0, num_steps)
         return matrices(theta), losses
 
     fitted, losses = jax.jit(steps)()
     return FitResult(_with_matrices(model, fitted), losses)
+
+
+def _is_minimiser(optimizer) -> bool:
+    """Whether ``optimizer`` is an optimistix minimiser (optimistix imported only to ask)."""
+    if isinstance(optimizer, optax.GradientTransformation):
+        return False
+    import optimistix as optx
+
+    return isinstance(optimizer, optx.AbstractMinimiser)
 
 
 def _optax_steps(optimizer, objective, theta0, num_steps):

@@ -320,7 +320,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     out_dir = Path(out) / "parallel"
     grid = QUICK_GRID if quick else GRID
     weights = [*grid_weights(grid), EM_SECONDS]
-    with Progress("parallel", total=len(weights), weights=weights) as progress:
+    with Progress("parallel", weights=weights) as progress:
         start = time.perf_counter()
         speed = speed_grid(**grid, progress=progress)
         speed_s = time.perf_counter() - start

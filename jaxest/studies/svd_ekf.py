@@ -927,7 +927,7 @@ def run(out: Path, *, runs: int | None, seed: int, quick: bool, options: dict) -
     air_data_label = f"air-data start, u, v, w {AIR_DATA_KINEMATIC_STD[0]:g} m/s"
     study_label = f"INS start, u, v, w {INS_KINEMATIC_STD[0]:g} m/s"
     weights = step_weights(conditions, own_model, air_data, figures, quick, data_dir is not None)
-    with Progress(NAME, len(weights), weights=weights) as progress:
+    with Progress(NAME, weights=weights) as progress:
         truths = {}
         for maneuver, rate, dtype_name in conditions:
             dtype = jnp.dtype(dtype_name)
