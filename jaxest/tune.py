@@ -134,7 +134,9 @@ def fit(
             line search only backtracks (Armijo) where optax's zooms to the Wolfe conditions,
             so on hard or rugged losses optax can get further in as many steps: the parallel
             study's fit of F, H, Q, R and notebook 06's UKF likelihood keep it
-            (docs/performance.md).
+            (docs/performance.md). Under ``jax.vmap`` over data sets use an optimistix
+            minimiser: on jaxlib 0.10's CPU, XLA miscompiles optax's batched line search, which
+            then can loop forever (docs/performance.md).
         num_steps: optimiser steps. A minimiser's step is one evaluation of the loss, where an
             optax line search's step may take several: from the same start it needs more steps
             (the sigma-point study's quick tuning, 5 runs: 25 for what optax reaches in 15). It
