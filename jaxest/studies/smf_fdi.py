@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest import xla_flags
 from jaxest._priors import Gaussian
 from jaxest._run import run as run_estimator
 from jaxest.filters import EKF
@@ -263,8 +264,14 @@ def batched_over_runs(one_run):
     calls (the EKF's and the filters' small factorisations), two of which running at once can
     deadlock XLA's CPU thread pool (:mod:`jaxest.montecarlo`). The filters now factor their 2x2
     and small matrices in fused ``jnp`` code, and ``tests/test_smf_fdi_batch.py`` checks that the
-    compiled study contains no LAPACK call and runs 20 times in a row under a time limit."""
-    return jax.jit(jax.vmap(one_run))
+    compiled study contains no LAPACK call and runs 20 times in a row under a time limit.
+
+    Compiled without YNNPACK fusions (:data:`jaxest.xla_flags.NO_YNN_FUSION`): with all runs,
+    scenarios and filters in one batch, XLA:CPU handed the larger element-wise fusions to
+    YNNPACK, and the study and the containment stress ran 12 % slower (docs/performance.md)."""
+    return jax.jit(
+        jax.vmap(one_run), compiler_options=xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
+    )
 
 
 def monte_carlo_function(closed_form_bound: bool = False):
