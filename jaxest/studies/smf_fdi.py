@@ -267,8 +267,8 @@ def batched_over_runs(one_run):
     compiled study contains no LAPACK call and runs 20 times in a row under a time limit.
 
     Compiled without YNNPACK fusions (:data:`jaxest.xla_flags.NO_YNN_FUSION`): with all runs,
-    scenarios and filters in one batch, XLA:CPU handed the larger element-wise fusions to
-    YNNPACK, and the study and the containment stress ran 12 % slower (docs/performance.md)."""
+    scenarios and filters in one batch, XLA:CPU handed its larger fusions to YNNPACK, and the
+    study and the containment stress ran 12 % slower (docs/performance.md)."""
     return jax.jit(
         jax.vmap(one_run), compiler_options=xla_flags.compile_options(xla_flags.NO_YNN_FUSION)
     )
