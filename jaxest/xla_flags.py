@@ -14,7 +14,7 @@ small fusions and its gradient twice as many. Three flags of the pinned jaxlib (
   splits each program's LLVM module into parts compiled on its thread pool. Where every core
   already runs a process of its own (the test suite's two workers) the split only adds work;
   one part compiles in less CPU time. On an idle machine the split is faster in wall time, so
-  ``reproduce`` does not use it.
+  ``reproduce`` uses it only for the studies it runs beside another (``--jobs``).
 
 docs/performance.md ("XLA flags that compile faster") has the measurements.
 
@@ -31,6 +31,7 @@ reaches the processes this one starts, which inherit the environment).
 from __future__ import annotations
 
 import os
+from collections.abc import MutableMapping
 
 import jaxlib
 
@@ -45,20 +46,24 @@ SERIAL_CODEGEN = ("--xla_cpu_parallel_codegen_split_count=1",)
 OPTIMISED_MACHINE_CODE = {"xla_backend_optimization_level": 2}
 
 
-def add(flags: tuple[str, ...]) -> tuple[str, ...]:
-    """Append ``flags`` (``--name=value`` each) to ``XLA_FLAGS`` in this process's environment,
-    except those whose name ``XLA_FLAGS`` already sets; returns the flags added. Adds nothing
-    on a jaxlib outside :data:`MEASURED_JAXLIB`."""
+def add(
+    flags: tuple[str, ...], environment: MutableMapping[str, str] | None = None
+) -> tuple[str, ...]:
+    """Append ``flags`` (``--name=value`` each) to ``XLA_FLAGS`` in ``environment`` (default: this
+    process's, ``os.environ``; a copy of it for a process about to be started), except those whose
+    name ``XLA_FLAGS`` already sets; returns the flags added. Adds nothing on a jaxlib outside
+    :data:`MEASURED_JAXLIB`."""
     for flag in flags:
         if not (flag.startswith("--") and "=" in flag):
             raise ValueError(f"flags: {flag!r} is not of the form --name=value")
     if not _measured_jaxlib():
         return ()
-    present = current().split()
+    environment = os.environ if environment is None else environment
+    present = environment.get("XLA_FLAGS", "").split()
     names_present = {_name(item) for item in present}
     added = tuple(flag for flag in flags if _name(flag) not in names_present)
     if added:
-        os.environ["XLA_FLAGS"] = " ".join([*present, *added])
+        environment["XLA_FLAGS"] = " ".join([*present, *added])
     return added
 
 

@@ -194,12 +194,14 @@ def test_after_a_failed_study_no_other_starts(tmp_path, monkeypatch, capsys):
 
 
 def test_the_timed_studies_run_alone(tmp_path, monkeypatch):
-    # stand-ins for the study processes, each noting when it ran
+    # stand-ins for the study processes, each noting when it ran and the XLA flags it was given
     script = (
-        "import json, sys, time\nname, entry = sys.argv[1:]\nstart = time.time()\n"
-        "time.sleep(1.0)\nopen(entry, 'w').write(json.dumps("
-        "{name: {'seconds': 1.0, 'ran': [start, time.time()]}}))"
+        "import json, os, sys, time\nname, entry = sys.argv[1:]\nstart = time.time()\n"
+        "time.sleep(1.0)\nopen(entry, 'w').write(json.dumps({name: {'seconds': 1.0, "
+        "'ran': [start, time.time()], 'xla_flags': os.environ.get('XLA_FLAGS', '')}}))"
     )
+    monkeypatch.setattr(jaxlib, "__version__", xla_flags.MEASURED_JAXLIB + "2")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_backend_optimization_level=2")  # the user's own
     monkeypatch.setattr(
         cli, "_worker_command",
         lambda name, args, entry: [sys.executable, "-c", script, name, str(entry)],
@@ -212,3 +214,9 @@ def test_the_timed_studies_run_alone(tmp_path, monkeypatch):
     overlap = lambda a, b: ran[a][0] < ran[b][1] and ran[b][0] < ran[a][1]
     assert overlap("wiener", "filters")
     assert not any(overlap(a, b) for a in ("smf-fdi", "parallel") for b in names if b != a)
+    # the studies beside another compile machine code in one piece; those alone as the user has it
+    flags = {name: entry["xla_flags"].split() for name, entry in index.items()}
+    user = ["--xla_backend_optimization_level=2"]
+    assert flags["wiener"] == flags["filters"] == [*user, *xla_flags.SERIAL_CODEGEN]
+    assert flags["smf-fdi"] == flags["parallel"] == user
+    assert os.environ["XLA_FLAGS"].split() == user  # this process's own are left as they were

@@ -23,6 +23,22 @@ def test_adds_the_flags_but_keeps_a_choice_already_made(monkeypatch):
     assert xla_flags.add(both) == ()  # a second call adds nothing twice
 
 
+def test_adds_to_the_environment_of_a_process_to_be_started(monkeypatch):
+    monkeypatch.setattr(jaxlib, "__version__", "0.10.2")
+    monkeypatch.setenv("XLA_FLAGS", "--xla_dump_to=/tmp/x")
+    child = {"XLA_FLAGS": "--xla_cpu_parallel_codegen_split_count=4"}
+    both = xla_flags.FASTER_COMPILATION + xla_flags.SERIAL_CODEGEN
+    assert xla_flags.add(both, child) == xla_flags.FASTER_COMPILATION
+    assert child["XLA_FLAGS"].split() == [
+        "--xla_cpu_parallel_codegen_split_count=4",
+        *xla_flags.FASTER_COMPILATION,
+    ]
+    assert os.environ["XLA_FLAGS"] == "--xla_dump_to=/tmp/x"  # this process's: unchanged
+    empty = {}
+    assert xla_flags.add(xla_flags.SERIAL_CODEGEN, empty) == xla_flags.SERIAL_CODEGEN
+    assert empty == {"XLA_FLAGS": xla_flags.SERIAL_CODEGEN[0]}
+
+
 def test_adds_nothing_on_a_jaxlib_it_was_not_measured_on(monkeypatch):
     monkeypatch.setattr(jaxlib, "__version__", "0.11.2")
     monkeypatch.delenv("XLA_FLAGS", raising=False)
