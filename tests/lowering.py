@@ -1,4 +1,4 @@
-"""What a traced program asks of XLA, read from its lowered text."""
+"""What a traced program asks of XLA, read from its lowered or compiled text."""
 
 import re
 
@@ -12,6 +12,16 @@ def dot_precisions(fn, *args) -> list[str]:
         line for line in jax.jit(fn).lower(*args).as_text().splitlines() if "dot_general" in line
     ]
     return [m[1] if (m := re.search(r"precision = \[(\w+), \w+\]", line)) else "" for line in lines]
+
+
+def custom_call_targets(compiled_text: str) -> list[str]:
+    """The library kernels a compiled program calls (``custom_call_target``), one per call."""
+    return re.findall(r'custom_call_target="([^"]+)"', compiled_text)
+
+
+def fusion_kinds(compiled_text: str) -> set[str]:
+    """The kinds of a compiled program's backend fusions (``"__ynn_fusion"``: YNNPACK's)."""
+    return set(re.findall(r'"fusion_config":\{"kind":"([^"]+)"', compiled_text))
 
 
 #: the monitoring event JAX records once for every program XLA compiles

@@ -4,7 +4,6 @@ batched LAPACK calls) and hand no fusion to YNNPACK, and the whole study runs 20
 within a time limit."""
 
 import os
-import re
 import subprocess
 import sys
 import textwrap
@@ -14,15 +13,10 @@ import pytest
 
 from jaxest import xla_flags
 from jaxest.studies import smf_fdi
+from tests.lowering import custom_call_targets, fusion_kinds
 
 REPEATS = 20
 TIME_LIMIT_S = 600
-
-
-def _custom_calls_and_fusion_kinds(fn, *args):
-    text = fn.lower(*args).compile().as_text()
-    calls = set(re.findall(r'custom_call_target="([^"]+)"', text))
-    return calls, set(re.findall(r'"fusion_config":\{"kind":"([^"]+)"', text))
 
 
 @pytest.mark.parametrize("closed_form_bound", [True, False])
@@ -30,13 +24,13 @@ def test_compiled_study_calls_no_lapack_and_no_ynnpack(closed_form_bound):
     """No LAPACK call (the deadlock above), and no fusion handed to YNNPACK, which ran the study
     and the containment stress 12 % slower (``batched_over_runs``)."""
     keys = jax.random.split(jax.random.key(0), 8)
-    calls, kinds = _custom_calls_and_fusion_kinds(
-        smf_fdi.monte_carlo_function(closed_form_bound), keys
+    programs = (
+        smf_fdi.monte_carlo_function(closed_form_bound),
+        smf_fdi.containment_stress_function(5.0),
     )
-    more_calls, more_kinds = _custom_calls_and_fusion_kinds(
-        smf_fdi.containment_stress_function(5.0), keys
-    )
-    calls, kinds = calls | more_calls, kinds | more_kinds
+    texts = [program.lower(keys).compile().as_text() for program in programs]
+    calls = {call for text in texts for call in custom_call_targets(text)}
+    kinds = {kind for text in texts for kind in fusion_kinds(text)}
     assert not [c for c in calls if "lapack" in c.lower()], calls
     if xla_flags.compile_options(xla_flags.NO_YNN_FUSION) is not None:
         assert not [k for k in kinds if "ynn" in k], kinds
