@@ -3,51 +3,21 @@
 Runs jaxest's compiled function of the row (speed.py's problem, data, mode and pass) once under
 ``jax.profiler`` and sums the trace's events by operation name. On the CPU each event is one
 thunk: a fusion, a copy, a library call. ``per_step`` is an operation run once per time step, or
-once per step of the reverse pass. XLA:CPU reports its thunks only with
-``--xla_cpu_enable_xprof_traceme=true``, which this script adds to ``XLA_FLAGS``. The profiler
-itself slows the run, so read the shares, not the absolute times; speed.py gives those.
+once per step of the reverse pass. The profiler itself slows the run (benchmarks/_xla_trace.py),
+so read the shares, not the absolute times; speed.py gives those.
 
     python benchmarks/profile_step.py linear_6x3 vmap200 forward [--top 12] [--json out.json]
 """
 
 from __future__ import annotations
 
-import os
+import argparse
 
-from jaxest import xla_flags
+import _xla_trace as xla_trace  # sets XLA_FLAGS, so before anything is computed
+import jax
+from speed import PROBLEMS, RUNS, T, jaxest_case, modes, passes
 
-# before jax starts its backend: the CPU thunks appear in a trace only with this flag (set
-# directly, not by xla_flags.add, which adds only on the jaxlib its flags were measured on)
-os.environ["XLA_FLAGS"] = f"{xla_flags.current()} --xla_cpu_enable_xprof_traceme=true".strip()
-
-import argparse  # noqa: E402
-import collections  # noqa: E402
-import gzip  # noqa: E402
-import json  # noqa: E402
-import tempfile  # noqa: E402
-from pathlib import Path  # noqa: E402
-
-import jax  # noqa: E402
-from speed import PROBLEMS, RUNS, T, jaxest_case, modes, passes  # noqa: E402
-
-from jaxest.report import emit_json  # noqa: E402
-
-#: trace events that are not XLA operations (the profiler's and the runtime's own spans)
-NOT_AN_OPERATION = ("$", "ThunkExecutor", "PjitFunction", "end: ")
-
-
-def operation_times(trace_dir: Path) -> tuple[collections.Counter, collections.Counter]:
-    """(total microseconds, number of events) per operation name in the perfetto trace."""
-    (trace,) = trace_dir.rglob("*.trace.json.gz")
-    events = json.loads(gzip.decompress(trace.read_bytes()))
-    events = events["traceEvents"] if isinstance(events, dict) else events
-    total, calls = collections.Counter(), collections.Counter()
-    for event in events:
-        name = event.get("name", "")
-        if event.get("ph") == "X" and not name.startswith(NOT_AN_OPERATION):
-            total[name] += event.get("dur", 0)
-            calls[name] += 1
-    return total, calls
+from jaxest.report import emit_json
 
 
 def profile(problem: str, mode: str, pass_name: str, runs: int, steps: int, top: int) -> dict:
@@ -60,11 +30,7 @@ def profile(problem: str, mode: str, pass_name: str, runs: int, steps: int, top:
         .compile(batching.compiler_options)
     )
     jax.block_until_ready(compiled(*args))  # warm up
-    with tempfile.TemporaryDirectory() as trace_dir:
-        jax.profiler.start_trace(trace_dir, create_perfetto_trace=True)
-        jax.block_until_ready(compiled(*args))
-        jax.profiler.stop_trace()
-        total, calls = operation_times(Path(trace_dir))
+    total, calls, _ = xla_trace.traced_operations(lambda: compiled(*args), compiled.as_text())
     time_steps = ys.shape[1]
     per_step = [name for name in calls if calls[name] >= time_steps]
     all_us = sum(total.values())
