@@ -27,16 +27,24 @@ from jaxest.studies import svd_ekf  # noqa: E402
 from jaxest.systems import flight_data, flight_sim as sim  # noqa: E402
 
 
-def per_step_times(runs: int, rate: int, dtype_name: str, repeats: int = 3) -> dict:
+def monte_carlo_arguments(runs: int, rate: int, dtype_name: str) -> tuple[dict, int]:
+    """({filter: arguments of the svd-ekf study's Monte Carlo}, time steps): ``runs`` simulated
+    elevator flights at ``rate`` Hz, all runs in one ``vmap`` (chunk = runs)."""
     dtype = jnp.dtype(dtype_name)
     truth = sim.true_flight("elevator", rate)
     batch = svd_ekf.simulated_batch(truth, runs, jax.random.key(0), dtype)
     model, P0 = svd_ekf.model_for(rate, dtype), svd_ekf.prior_cov(dtype)
-    T = truth.t.shape[0]
     settle = int(svd_ekf.SETTLE_S * rate)
+    arguments = {
+        name: (est, model, batch, P0, settle, runs) for name, est in svd_ekf.FILTERS.items()
+    }
+    return arguments, truth.t.shape[0]
+
+
+def per_step_times(runs: int, rate: int, dtype_name: str, repeats: int = 3) -> dict:
+    arguments, T = monte_carlo_arguments(runs, rate, dtype_name)
     out = {}
-    for name, est in svd_ekf.FILTERS.items():  # one vmap over all runs (chunk = runs)
-        args = (est, model, batch, P0, settle, runs)
+    for name, args in arguments.items():
         start = time.perf_counter()
         lowered = svd_ekf._monte_carlo.lower(*args)
         lowered_at = time.perf_counter()
