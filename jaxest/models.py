@@ -296,7 +296,9 @@ def check_time_axis(name: str, matrix, first: int, count: int, ndim: int = 2) ->
     read by :func:`at_time`), does not cover the steps ``first`` .. ``first + count - 1`` that a
     run or a simulation reads: JAX clamps an index past the end, so those steps would silently
     reuse the last matrix."""
-    if callable(matrix) or jnp.ndim(matrix) != ndim + 1 or jnp.shape(matrix)[0] >= first + count:
+    if matrix is None or callable(matrix) or jnp.ndim(matrix) != ndim + 1:
+        return
+    if jnp.shape(matrix)[0] >= first + count:
         return
     steps = (
         f"the {count} measurements"
