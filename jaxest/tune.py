@@ -13,6 +13,7 @@ e.g. a diagonal-only Cholesky fit, or one variance held fixed.
 from __future__ import annotations
 
 import functools
+import warnings
 from collections.abc import Callable, Sequence
 from typing import TYPE_CHECKING
 
@@ -136,7 +137,8 @@ def fit(
             study's fit of F, H, Q, R and notebook 06's UKF likelihood keep it
             (docs/performance.md). Under ``jax.vmap`` over data sets use an optimistix
             minimiser: on jaxlib 0.10's CPU, XLA miscompiles optax's batched line search, which
-            then can loop forever (docs/performance.md).
+            then can loop forever (docs/performance.md); ``fit`` warns
+            (:data:`BATCHED_LINE_SEARCH_WARNING`) as it traces one under ``vmap``.
         num_steps: optimiser steps. A minimiser's step is one evaluation of the loss, where an
             optax line search's step may take several: from the same start it needs more steps
             (the sigma-point study's quick tuning, 5 runs: 25 for what optax reaches in 15). It
@@ -219,11 +221,18 @@ def _optax_steps(optimizer, objective, theta0, num_steps):
     the loss each step started from."""
     optimizer = optax.with_extra_args_support(optimizer)
     opt_state0 = optimizer.init(theta0)
-    value_and_grad = _value_and_grad(objective, opt_state0)
+    line_search = _keeps_value_and_grad(opt_state0)
+    value_and_grad = (
+        optax.value_and_grad_from_state(objective)
+        if line_search
+        else lambda theta, state: jax.value_and_grad(objective)(theta)
+    )
 
     def body(carry, _):
         theta, opt_state = carry
         value, grads = value_and_grad(theta, state=opt_state)
+        if line_search:
+            value = _warn_if_batched(value)
         updates, opt_state = optimizer.update(
             grads, opt_state, theta, value=value, grad=grads, value_fn=objective
         )
@@ -296,16 +305,40 @@ def _check_start(name: str, P, kind: str):
             )
 
 
-def _value_and_grad(objective, opt_state):
-    """Loss and gradient at the current parameter. A line search (``optax.lbfgs``) keeps both for
-    the point it accepted in its state: they are taken from there instead of evaluated again."""
+def _keeps_value_and_grad(opt_state) -> bool:
+    """Whether the optimiser has a line search (``optax.lbfgs``) that keeps the loss and gradient
+    of the point it accepted in its state: they are then taken from there instead of evaluated
+    again (``optax.value_and_grad_from_state``)."""
     try:
         stored = [optax.tree.get(opt_state, name) for name in ("value", "grad")]
     except KeyError:  # several line searches in one chain: evaluate
-        stored = [None]
-    if any(s is None for s in stored):
-        return lambda theta, state: jax.value_and_grad(objective)(theta)
-    return optax.value_and_grad_from_state(objective)
+        return False
+    return all(s is not None for s in stored)
+
+
+#: the warning when optax's line search is traced under ``jax.vmap`` where it was seen to hang
+BATCHED_LINE_SEARCH_WARNING = (
+    "fit: optax's line search under jax.vmap over data sets; on jaxlib 0.10's CPU, XLA "
+    "miscompiles the batched line search of optax.lbfgs(), and some batches loop forever "
+    "(docs/performance.md). Use an optimistix minimiser under vmap (optimistix.LBFGS, or "
+    "jaxest.tune.FIXED_STEPS_LBFGS)."
+)
+
+
+@jax.custom_batching.custom_vmap
+def _warn_if_batched(value):
+    """``value``; where ``jax.vmap`` batches it (one loss per data set), on jaxlib 0.10's CPU,
+    warns :data:`BATCHED_LINE_SEARCH_WARNING` as the program is traced. (A ``vmap`` whose
+    batched values the loss does not depend on leaves it unbatched, and this silent.)"""
+    return value
+
+
+@_warn_if_batched.def_vmap
+def _warn_if_batched_vmap(axis_size, in_batched, value):
+    # jax and jaxlib share their version: 0.10 is the jaxlib whose XLA was seen to hang
+    if jax.default_backend() == "cpu" and jax.__version_info__[:2] == (0, 10):
+        warnings.warn(BATCHED_LINE_SEARCH_WARNING, RuntimeWarning)
+    return value, in_batched[0]
 
 
 def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool | None, field: str):

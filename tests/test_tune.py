@@ -1,5 +1,7 @@
 """SPD parametrisations and gradient fitting."""
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -120,6 +122,38 @@ def test_minimiser_fits_a_batch_of_data_sets_in_one_vmap():
     for ys, variances in zip(sims.y, batched, strict=True):
         np.testing.assert_allclose(variances, one_by_one(ys), rtol=1e-6)
     assert len({float(v) for v in batched[:, 0]}) == 4  # four data sets, four fits
+
+
+@pytest.mark.skipif(
+    jax.default_backend() != "cpu" or jax.__version_info__[:2] != (0, 10),
+    reason="the warning is for jaxlib 0.10's CPU, where the hang was seen",
+)
+def test_optax_line_search_under_vmap_warns_as_it_is_traced():
+    """optax.lbfgs() under ``jax.vmap`` over data sets can loop forever on jaxlib 0.10's CPU
+    (docs/performance.md): the user is told while the program is traced (``eval_shape``: it is
+    never run), and only for a line search whose losses differ across the batch."""
+    truth, prior, sims = scalar_problem(runs=2, T=20)
+    wrong = je.LinearGaussian(truth.F, truth.H, 10 * truth.Q, truth.R / 10)
+    params = {"Q": "log_diagonal", "R": "log_diagonal"}
+
+    def fitted_q(ys, optimizer):
+        loss = neg_loglik(KalmanFilter(), ys[None], prior=prior)
+        return fit(wrong, loss, params, optimizer=optimizer, num_steps=3).model.Q
+
+    with pytest.warns(RuntimeWarning, match="optimistix minimiser under vmap"):
+        jax.eval_shape(jax.vmap(lambda ys: fitted_q(ys, optax.lbfgs())), sims.y)
+    one_data_set = sims.y[0]
+    quiet = [
+        lambda: jax.eval_shape(lambda ys: fitted_q(ys, optax.lbfgs()), one_data_set),
+        lambda: jax.eval_shape(jax.vmap(lambda ys: fitted_q(ys, optax.adam(0.1))), sims.y),
+        lambda: jax.eval_shape(jax.vmap(lambda ys: fitted_q(ys, FIXED_STEPS_LBFGS)), sims.y),
+        # batched over something the losses do not depend on
+        lambda: jax.eval_shape(jax.vmap(lambda _: fitted_q(one_data_set, optax.lbfgs())), sims.y),
+    ]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        for trace in quiet:
+            trace()
 
 
 def test_minimiser_stops_at_its_tolerances():
