@@ -325,19 +325,30 @@ BATCHED_LINE_SEARCH_WARNING = (
 )
 
 
-@jax.custom_batching.custom_vmap
+@jax.custom_jvp
 def _warn_if_batched(value):
     """``value``; where ``jax.vmap`` batches it (one loss per data set), on jaxlib 0.10's CPU,
     warns :data:`BATCHED_LINE_SEARCH_WARNING` as the program is traced. (A ``vmap`` whose
-    batched values the loss does not depend on leaves it unbatched, and this silent.)"""
+    batched values the loss does not depend on leaves it unbatched, and this silent.) Its
+    derivative is the identity's: ``custom_vmap`` alone cannot be differentiated."""
+    return _batching_alarm(value)
+
+
+@_warn_if_batched.defjvp
+def _warn_if_batched_jvp(primals, tangents):
+    return _warn_if_batched(*primals), *tangents
+
+
+@jax.custom_batching.custom_vmap
+def _batching_alarm(value):
     return value
 
 
-@_warn_if_batched.def_vmap
-def _warn_if_batched_vmap(axis_size, in_batched, value):
+@_batching_alarm.def_vmap
+def _batching_alarm_vmap(axis_size, in_batched, value):
     # jax and jaxlib share their version: 0.10 is the jaxlib whose XLA was seen to hang
     if jax.default_backend() == "cpu" and jax.__version_info__[:2] == (0, 10):
-        warnings.warn(BATCHED_LINE_SEARCH_WARNING, RuntimeWarning)
+        warnings.warn(BATCHED_LINE_SEARCH_WARNING, RuntimeWarning, stacklevel=1)  # JAX calls this
     return value, in_batched[0]
 
 

@@ -11,6 +11,7 @@ import optimistix as optx
 import pytest
 
 import jaxest as je
+from jaxest import tune
 from jaxest.filters import EKF, KalmanFilter
 from jaxest.montecarlo import monte_carlo
 from jaxest.tune import (
@@ -154,6 +155,9 @@ def test_optax_line_search_under_vmap_warns_as_it_is_traced():
         warnings.simplefilter("error")
         for trace in quiet:
             trace()
+    # the alarm on the loss keeps its derivative (a custom_vmap alone has none)
+    alarmed = lambda x: tune._warn_if_batched(3.0 * x) ** 2
+    assert jax.grad(alarmed)(2.0) == 36.0 and jax.jvp(alarmed, (2.0,), (1.0,))[1] == 36.0
 
 
 def test_minimiser_stops_at_its_tolerances():
