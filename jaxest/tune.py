@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jaxlib
 import numpy as np
 import optax
 
@@ -316,6 +317,12 @@ def _keeps_value_and_grad(opt_state) -> bool:
     return all(s is not None for s in stored)
 
 
+def _line_search_miscompiled_here() -> bool:
+    """Whether this process runs the XLA seen to miscompile optax's batched line search: jaxlib
+    0.10's, on the CPU (docs/performance.md)."""
+    return jax.default_backend() == "cpu" and jaxlib.__version__.startswith("0.10.")
+
+
 #: the warning when optax's line search is traced under ``jax.vmap`` where it was seen to hang
 BATCHED_LINE_SEARCH_WARNING = (
     "fit: optax's line search under jax.vmap over data sets; on jaxlib 0.10's CPU, XLA "
@@ -346,8 +353,7 @@ def _batching_alarm(value):
 
 @_batching_alarm.def_vmap
 def _batching_alarm_vmap(axis_size, in_batched, value):
-    # jax and jaxlib share their version: 0.10 is the jaxlib whose XLA was seen to hang
-    if jax.default_backend() == "cpu" and jax.__version_info__[:2] == (0, 10):
+    if _line_search_miscompiled_here():
         warnings.warn(BATCHED_LINE_SEARCH_WARNING, RuntimeWarning, stacklevel=1)  # JAX calls this
     return value, in_batched[0]
 

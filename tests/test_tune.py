@@ -126,7 +126,7 @@ def test_minimiser_fits_a_batch_of_data_sets_in_one_vmap():
 
 
 @pytest.mark.skipif(
-    jax.default_backend() != "cpu" or jax.__version_info__[:2] != (0, 10),
+    not tune._line_search_miscompiled_here(),
     reason="the warning is for jaxlib 0.10's CPU, where the hang was seen",
 )
 def test_optax_line_search_under_vmap_warns_as_it_is_traced():
