@@ -60,7 +60,7 @@ from jaxest._checks import check_gaussian_arguments
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import Status, finite_status, status_where
 from jaxest.filters.common import gaussian_loglik, masked_measurement
-from jaxest.linalg import cholesky, solve_triangular, tria
+from jaxest.linalg import cholesky, mv, solve_triangular, tria
 
 ParticleStatus = Status.extend(
     "ParticleStatus",
@@ -154,9 +154,10 @@ class GaussianTransition(eqx.Module):
     factor: Float[Array, "n n"]
 
     def sample(self, key):
-        """A reparameterised draw mean + factor z, z ~ N(0, I)."""
-        z = jax.random.normal(key, self.factor.shape[-1:], self.mean.dtype)
-        return self.mean + self.factor @ z
+        """A reparameterised draw mean + factor z, z ~ N(0, I); for transitions stacked on
+        leading axes (every particle's), one draw of each from the one key."""
+        z = jax.random.normal(key, self.mean.shape, self.mean.dtype)
+        return self.mean + mv(self.factor, z)
 
     def log_prob(self, x):
         """log N(x; mean, factor factor^T) (needs a non-singular covariance)."""
@@ -316,9 +317,8 @@ class ParticleFilter(AbstractEstimator):
 
     def _propose(self, model, transition, k, y, u, key):
         """Particles x_k^i and their log-weight increments (eq 1 without log W_{k-1})."""
-        keys = jax.random.split(key, self.num_particles)
-        if self.proposal is None:
-            x = jax.vmap(lambda t, kk: t.sample(kk))(transition, keys)
+        if self.proposal is None:  # every particle's draw from one key (docs/sigma_point.md)
+            x = transition.sample(key)
             return x, measurement_loglik(model, x, k, y, u)
 
         def one(t, kk):
@@ -326,7 +326,7 @@ class ParticleFilter(AbstractEstimator):
             correction = t.log_prob(xi) - self.proposal.log_prob(model, xi, t, k, y, u)
             return xi, correction
 
-        x, correction = jax.vmap(one)(transition, keys)
+        x, correction = jax.vmap(one)(transition, jax.random.split(key, self.num_particles))
         return x, measurement_loglik(model, x, k, y, u) + correction
 
     def _resample(self, log_W, W, ess, key):
