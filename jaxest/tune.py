@@ -222,18 +222,11 @@ def _optax_steps(optimizer, objective, theta0, num_steps):
     the loss each step started from."""
     optimizer = optax.with_extra_args_support(optimizer)
     opt_state0 = optimizer.init(theta0)
-    line_search = _keeps_value_and_grad(opt_state0)
-    value_and_grad = (
-        optax.value_and_grad_from_state(objective)
-        if line_search
-        else lambda theta, state: jax.value_and_grad(objective)(theta)
-    )
+    value_and_grad = _value_and_grad(objective, opt_state0)
 
     def body(carry, _):
         theta, opt_state = carry
         value, grads = value_and_grad(theta, state=opt_state)
-        if line_search:
-            value = _warn_if_batched(value)
         updates, opt_state = optimizer.update(
             grads, opt_state, theta, value=value, grad=grads, value_fn=objective
         )
@@ -306,15 +299,24 @@ def _check_start(name: str, P, kind: str):
             )
 
 
-def _keeps_value_and_grad(opt_state) -> bool:
-    """Whether the optimiser has a line search (``optax.lbfgs``) that keeps the loss and gradient
-    of the point it accepted in its state: they are then taken from there instead of evaluated
-    again (``optax.value_and_grad_from_state``)."""
+def _value_and_grad(objective, opt_state):
+    """Loss and gradient at the current parameter, as ``(theta, state) -> (value, grads)``. A
+    line search (``optax.lbfgs``) keeps both for the point it accepted in its state: they are
+    taken from there instead of evaluated again (``optax.value_and_grad_from_state``), and the
+    loss passes :func:`_warn_if_batched`."""
     try:
         stored = [optax.tree.get(opt_state, name) for name in ("value", "grad")]
     except KeyError:  # several line searches in one chain: evaluate
-        return False
-    return all(s is not None for s in stored)
+        stored = [None]
+    if any(s is None for s in stored):
+        return lambda theta, state: jax.value_and_grad(objective)(theta)
+    from_state = optax.value_and_grad_from_state(objective)
+
+    def from_line_search(theta, state):
+        value, grads = from_state(theta, state=state)
+        return _warn_if_batched(value), grads
+
+    return from_line_search
 
 
 def _line_search_miscompiled_here() -> bool:
