@@ -61,14 +61,26 @@ docs: $(BIN)/.installed-docs
 docs-check: docs
 	$(BIN)/python docs/check_site.py site
 
-# A built wheel installs into a clean venv (outside the clone) and runs a quick study.
+# A wheel built from the sdist (as a release is, so nothing left in build/ gets in) installs into a
+# clean venv outside the clone, imports every module it ships from there (a module that needs a
+# dev-only package fails here), has its console script, and runs a quick study. .ci/run calls it.
+define WHEEL_IMPORTS_EVERY_MODULE
+import importlib, pathlib, pkgutil, jaxest
+assert pathlib.Path(jaxest.__file__).is_relative_to(pathlib.Path("venv").resolve()), jaxest.__file__
+names = [m.name for m in pkgutil.walk_packages(jaxest.__path__, "jaxest.") if m.name != "jaxest.__main__"]
+for name in names: importlib.import_module(name)
+print(f"wheel: {len(names)} modules of jaxest import")
+endef
+export WHEEL_IMPORTS_EVERY_MODULE
 WHEEL_TMP ?= $(or $(TMPDIR),/tmp)/jaxest-wheel-check
 wheel-check:
 	rm -rf $(WHEEL_TMP)
 	$(PYTHON) -m venv $(WHEEL_TMP)/venv
 	$(WHEEL_TMP)/venv/bin/pip install --quiet --upgrade pip build
-	$(WHEEL_TMP)/venv/bin/python -m build --wheel --outdir $(WHEEL_TMP)/dist .
+	$(WHEEL_TMP)/venv/bin/python -m build --outdir $(WHEEL_TMP)/dist .
 	$(WHEEL_TMP)/venv/bin/pip install --quiet $(WHEEL_TMP)/dist/jaxest-*.whl
+	cd $(WHEEL_TMP) && venv/bin/python -c "$$WHEEL_IMPORTS_EVERY_MODULE"
+	cd $(WHEEL_TMP) && venv/bin/jaxest reproduce --help > /dev/null
 	cd $(WHEEL_TMP) && venv/bin/python -m jaxest reproduce filters --quick --out results
 	test -s $(WHEEL_TMP)/results/filters/summary.json
 
