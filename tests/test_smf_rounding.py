@@ -29,10 +29,11 @@ PROBLEMS = 60  # per dimension
 
 def _exact_form(x, center, shape):
     """(x - c)^T P^-1 (x - c) in rational arithmetic (Gaussian elimination on Fractions); x may
-    be Fractions, c and P floats."""
+    be Fractions, c and P floats (NumPy's: an entry read from a JAX array costs a dispatch)."""
+    center, shape = np.asarray(center, dtype=float), np.asarray(shape, dtype=float)
     n = len(center)
-    d = [Fraction(x[i]) - Fraction(float(center[i])) for i in range(n)]
-    M = [[Fraction(float(shape[i][j])) for j in range(n)] + [d[i]] for i in range(n)]
+    d = [Fraction(x[i]) - Fraction(center[i]) for i in range(n)]
+    M = [[Fraction(shape[i, j]) for j in range(n)] + [d[i]] for i in range(n)]
     for k in range(n):
         pivot = max(range(k, n), key=lambda i: abs(M[i][k]))
         M[k], M[pivot] = M[pivot], M[k]
