@@ -38,7 +38,7 @@ def main() -> None:
 
     from jaxest import run, vmap_minor
     from jaxest.observers.adaptive import DiscreteAdaptiveObserver, ObserverPrior
-    from jaxest.report import emit_json
+    from jaxest.report import device_name, emit_json
     from jaxest.studies.adaptive import (
         DT,
         fly,
@@ -48,7 +48,7 @@ def main() -> None:
         random_scenarios,
     )
 
-    results = {"device": jax.devices()[0].device_kind, "machine": platform.machine(), "dt": DT}
+    results = {"device": device_name(), "machine": platform.machine(), "dt": DT}
     for name in ("charlie", "b747"):
         plant = make_plant(name)
         observer = hand_observer(plant)

@@ -27,7 +27,7 @@ import jax
 from speed import PROBLEMS, jaxest_case, modes, passes
 
 from jaxest._jaxpr import inner_jaxprs
-from jaxest.report import emit_json
+from jaxest.report import device_name, emit_json
 
 
 def equations(jaxpr) -> int:
@@ -76,7 +76,7 @@ def main(argv=None):
                 rows.append(
                     row | phases(mode.wrap(fn), mode.args, mode.compiler_options, args.repeats)
                 )
-    emit_json({"device": str(jax.devices()[0]), "rows": rows}, args.json)
+    emit_json({"device": device_name(), "rows": rows}, args.json)
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import device_name, emit_json  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
 from jaxest.systems import flight_data, flight_sim as sim  # noqa: E402
 
@@ -86,7 +86,7 @@ def main() -> None:
     result = {
         "machine": {
             "platform": platform.platform(),
-            "device": str(jax.devices()[0]),
+            "device": device_name(),
             "jax": jax.__version__,
         },  # fmt: skip
         "state_dim": 23,

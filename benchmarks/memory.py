@@ -23,7 +23,7 @@ jax.config.update("jax_enable_x64", True)
 from speed import linear_model  # noqa: E402 - the speed benchmark's 4x2 model
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import device_name, emit_json  # noqa: E402
 
 
 def peak_rss_mib() -> float:
@@ -53,7 +53,7 @@ def main(argv=None):
     n = 4
     emit_json(
         {
-            "device": str(jax.devices()[0]),
+            "device": device_name(),
             "runs": args.runs,
             "steps": args.steps,
             "chunk": args.chunk,

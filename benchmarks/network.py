@@ -23,7 +23,7 @@ jax.config.update("jax_enable_x64", True)
 from jaxest import Gaussian, run  # noqa: E402
 from jaxest.network import CommunicationStructure, NetworkFilter, steady_state  # noqa: E402
 from jaxest.network.structure import block_diag  # noqa: E402
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import device_name, emit_json  # noqa: E402
 from jaxest.systems.chain import initial_prior, mass_chain  # noqa: E402
 
 
@@ -144,7 +144,7 @@ def main():
         row["run_steps"] = args.steps
         rows.append(row)
         print(json.dumps(row))
-    result = {"benchmark": "network", "device": jax.devices()[0].platform, "rows": rows}
+    result = {"benchmark": "network", "device": device_name(), "rows": rows}
     emit_json(result, args.json)
 
 

@@ -25,7 +25,7 @@ jax.config.update("jax_enable_x64", True)
 
 from flight import monte_carlo_arguments  # noqa: E402
 
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import device_name, emit_json  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
 
 #: XLA:CPU's library kernels (LAPACK through jaxlib), as :func:`_xla_trace.instructions` names them
@@ -88,7 +88,7 @@ def main(argv=None):
         "runs": args.runs,
         "rate_hz": args.rate,
         "dtype": args.dtype,
-        "device": str(jax.devices()[0]),
+        "device": device_name(),
         "filters": profile(args.runs, args.rate, args.dtype, args.top),
     }
     emit_json(result, args.json)

@@ -26,7 +26,7 @@ import numpy as np
 jax.config.update("jax_enable_x64", True)
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json, timed  # noqa: E402
+from jaxest.report import device_name, emit_json, timed  # noqa: E402
 
 T, RUNS, DT, GRAVITY = 1000, 200, 0.0125, 9.81
 ALPHA, BETA, KAPPA = 1.0, 2.0, 0.0
@@ -120,7 +120,7 @@ def main(argv=None):
             )
             print(json.dumps(rows[-1]), flush=True)
     emit_json(
-        {"device": str(jax.devices()[0]), "steps": args.steps, "runs": args.runs, "rows": rows},
+        {"device": device_name(), "steps": args.steps, "runs": args.runs, "rows": rows},
         args.json,
     )
 

@@ -103,7 +103,7 @@ def main(argv=None):
 
     import jax
 
-    from jaxest.report import emit_json
+    from jaxest.report import device_name, emit_json
 
     jax.config.update("jax_enable_x64", True)
     from jaxest.studies import smf_fdi
@@ -142,7 +142,7 @@ def main(argv=None):
         "numpy_runs_per_second": r0,
         "ratio": r / r0,
         "runs": args.runs,
-        "device": str(jax.devices()[0]),
+        "device": device_name(),
     }
     emit_json(result, args.json)
     return 0

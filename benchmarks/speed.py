@@ -39,7 +39,7 @@ import jaxest as je  # noqa: E402
 from jaxest import batching  # noqa: E402
 from jaxest.filters import KalmanFilter  # noqa: E402
 from jaxest.linalg import cholesky, logdet_chol  # noqa: E402
-from jaxest.report import emit_json, timed  # noqa: E402
+from jaxest.report import device_name, emit_json, timed  # noqa: E402
 from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter  # noqa: E402
 from jaxest.studies import smf_fdi  # noqa: E402
 from jaxest.systems import duffing  # noqa: E402
@@ -324,7 +324,7 @@ def main(argv=None):
     for r in rows:
         if r["pass"] == "value_and_grad":
             r["grad_over_forward"] = r["jaxest_us_per_step"] / forward[(r["problem"], r["mode"])]
-    emit_json({"device": str(jax.devices()[0]), "rows": rows}, args.json)
+    emit_json({"device": device_name(), "rows": rows}, args.json)
 
 
 if __name__ == "__main__":

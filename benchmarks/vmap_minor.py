@@ -22,7 +22,7 @@ import jax.numpy as jnp  # noqa: E402
 from speed import RUNS, T, gaussian_data, linear_model, modes, scaled_q_run  # noqa: E402
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import device_name, emit_json  # noqa: E402
 
 FILTERS = [je.KalmanFilter, je.EKF, je.InformationFilter, je.SquareRootKF, je.SVDEKF, je.UKF]
 
@@ -66,7 +66,7 @@ def main(argv=None):
     parser.add_argument("--json", help="write the results here as well as to stdout")
     args = parser.parse_args(argv)
     rows = measure(args.rounds)
-    emit_json({"device": str(jax.devices()[0]), "runs": RUNS, "steps": T, "rows": rows}, args.json)
+    emit_json({"device": device_name(), "runs": RUNS, "steps": T, "rows": rows}, args.json)
 
 
 if __name__ == "__main__":

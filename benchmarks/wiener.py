@@ -24,7 +24,7 @@ import jax.numpy as jnp
 
 from jaxest import Gaussian, run
 from jaxest.filters.kalman import KalmanFilter
-from jaxest.report import emit_json
+from jaxest.report import device_name, emit_json
 from jaxest.smoothers.rts import rts_smooth
 from jaxest.smoothers.wiener import WienerSmoother
 from jaxest.systems.wiener_example import ARBITRARY_START, paper_model
@@ -93,7 +93,7 @@ def main(argv=None):
         print(json.dumps(row), flush=True)
     result = {
         "benchmark": "wiener smoother vs Kalman filter + RTS",
-        "device": str(jax.devices()[0]),
+        "device": device_name(),
         "jax": jax.__version__,
         "machine": platform.machine(),
         "results": rows,
