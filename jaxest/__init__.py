@@ -7,6 +7,7 @@ Every filter, smoother and observer is an equinox Module with a pure ``init``/``
 
 import warnings as _warnings
 
+from jaxest import memory_maps as _memory_maps
 from jaxest._checks import check_gaussian_arguments as check_gaussian_arguments
 from jaxest._estimator import (
     AbstractAssociativeEstimator as AbstractAssociativeEstimator,
@@ -102,6 +103,10 @@ from jaxest.tune import (
     neg_loglik as neg_loglik,
     supervised_mse as supervised_mse,
 )
+
+# a warning before XLA:CPU's compiled programs exhaust the process's memory mappings, which
+# kills it (jaxest.memory_maps); a no-op where they cannot be counted
+_memory_maps.watch()
 
 #: the public API, which the documentation's API reference lists (tests/test_api_reference.py
 #: checks it names every public import above)
