@@ -78,9 +78,7 @@ class _Watch:
         if self.compiles_to_skip > 0:
             self.compiles_to_skip -= 1
             return
-        mappings = count()
-        if mappings is None:
-            return
+        mappings = count()  # readable: watch() started this listener only where it is
         if mappings < self.warn_at:
             self.warned = False
             self.compiles_to_skip = (self.warn_at - mappings) // MOST_PER_PROGRAM
