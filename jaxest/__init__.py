@@ -39,6 +39,7 @@ from jaxest.filters import (
     FilterResult as FilterResult,
     GaussHermiteKF as GaussHermiteKF,
     GaussianState as GaussianState,
+    GaussianTransition as GaussianTransition,
     ImprovedSVDKF as ImprovedSVDKF,
     InformationFilter as InformationFilter,
     InformationFormResult as InformationFormResult,
@@ -57,6 +58,7 @@ from jaxest.filters import (
     SteadyStateKalmanFilter as SteadyStateKalmanFilter,
     StepOutput as StepOutput,
     SVDFactor as SVDFactor,
+    resample as resample,
     steady_state_gain as steady_state_gain,
 )
 from jaxest.models import (
@@ -97,6 +99,7 @@ from jaxest.smoothers.steady_state import (
 )
 from jaxest.smoothers.wiener import WienerSmoother as WienerSmoother, wiener_smooth as wiener_smooth
 from jaxest.tune import (
+    FitResult as FitResult,
     fit as fit,
     log_variance_standard_errors as log_variance_standard_errors,
     log_variances as log_variances,
@@ -115,20 +118,20 @@ __all__ = [
     "AbstractGaussianFilter", "AbstractGaussianModel", "AbstractProposal", "AbstractResult",
     "AbstractSVDFilter", "AbstractSigmaPointFilter", "AdaptiveObserver", "CholeskyFactor",
     "ContinuousLTV", "Covariance", "CubatureKF", "DiscreteAdaptiveObserver", "DiscreteLTV", "EKF",
-    "EMResult", "EMStatus", "FilterResult", "GaussHermiteKF", "Gaussian", "GaussianState",
-    "ImprovedSVDKF", "InformationFilter", "InformationFormResult", "InformationMatrix",
-    "InformationStatus", "InputEffectiveness", "IteratedEKF",
-    "IteratedSmootherResult", "KalmanFilter", "LinearGaussian", "NonlinearGaussian",
+    "EMResult", "EMStatus", "FilterResult", "FitResult", "GaussHermiteKF", "Gaussian",
+    "GaussianState", "GaussianTransition", "ImprovedSVDKF", "InformationFilter",
+    "InformationFormResult", "InformationMatrix", "InformationStatus", "InputEffectiveness",
+    "IteratedEKF", "IteratedSmootherResult", "KalmanFilter", "LinearGaussian", "NonlinearGaussian",
     "ObserverPrior", "ObserverStatus", "ParallelFilterResult", "ParallelKalmanFilter",
     "ParallelStatus", "ParticleFilter", "ParticleResult", "ParticleStatus", "RiccatiSolution",
     "RiccatiStatus", "SVDEKF", "SVDFactor", "SaveAt", "Simulation", "SmootherResult",
     "SquareRootKF", "Status", "StatusFlag", "SteadyStateGain", "SteadyStateKalmanFilter",
     "StepOutput", "UKF", "WienerSmoother", "arma_innovation_model", "check_gaussian_arguments",
     "finite_status", "fit", "fit_em", "iterated_smooth", "log_variance_standard_errors",
-    "log_variances", "lqr_gain", "monte_carlo", "neg_loglik", "raise_if_failed", "rts_smooth",
-    "run", "sigma_point_rts_smooth", "simulate", "solve_care", "solve_dare", "solve_filter_care",
-    "solve_filter_dare", "status_where", "steady_state_gain", "steady_state_smooth",
-    "supervised_mse", "vmap_minor", "vmap_minor_fallbacks", "wiener_smooth",
+    "log_variances", "lqr_gain", "monte_carlo", "neg_loglik", "raise_if_failed", "resample",
+    "rts_smooth", "run", "sigma_point_rts_smooth", "simulate", "solve_care", "solve_dare",
+    "solve_filter_care", "solve_filter_dare", "status_where", "steady_state_gain",
+    "steady_state_smooth", "supervised_mse", "vmap_minor", "vmap_minor_fallbacks", "wiener_smooth",
 ]  # fmt: skip
 
 

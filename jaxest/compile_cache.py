@@ -35,6 +35,11 @@ import tempfile
 import textwrap
 from pathlib import Path
 
+__all__ = [
+    "REQUEST", "MIN_COMPILE_SECONDS", "PROBE_FILE", "REJECTED", "host_key", "cache_dir",
+    "run_probe_program", "probe", "enable",
+]  # fmt: skip
+
 #: the environment variable that asks for the cache
 REQUEST = "JAXEST_COMPILATION_CACHE"
 #: programs that compile faster than this are not written to the cache

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import gc
 
+__all__ = ["FOR_TRACING", "collect_rarely"]
+
 #: collector thresholds (generation 0, 1, 2): a young collection every 100 000 net allocations
 #: instead of 700, a full one after 200 young ones instead of 100
 FOR_TRACING = (100_000, 20, 10)

@@ -23,6 +23,11 @@ from pathlib import Path
 
 import jax
 
+__all__ = [
+    "WARN_FRACTION", "MOST_PER_PROGRAM", "COUNT_EVERY_AFTER_WARNING", "count", "limit",
+    "warning_message", "watch",
+]  # fmt: skip
+
 #: warn at this fraction of ``vm.max_map_count``
 WARN_FRACTION = 0.8
 #: mappings one program may add, for spacing the counts: a count is due once this many per

@@ -35,6 +35,11 @@ from collections.abc import MutableMapping
 
 import jaxlib
 
+__all__ = [
+    "MEASURED_JAXLIB", "FASTER_COMPILATION", "UNOPTIMISED_MACHINE_CODE", "SERIAL_CODEGEN",
+    "OPTIMISED_MACHINE_CODE", "add", "current", "NO_YNN_FUSION", "compile_options",
+]  # fmt: skip
+
 #: the jaxlib release series whose XLA knows these flags and on which they were measured
 MEASURED_JAXLIB = "0.10."
 FASTER_COMPILATION = ("--xla_cpu_use_fusion_emitters=false",)

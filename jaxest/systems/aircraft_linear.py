@@ -18,6 +18,11 @@ from __future__ import annotations
 
 import numpy as np
 
+__all__ = [
+    "CHARLIE_TIME_UNIT_S", "CHARLIE_THETA", "B747_THETA", "charlie", "b747", "CHARLIE_OUTPUTS",
+    "B747_OUTPUTS", "output_matrix", "aircraft",
+]  # fmt: skip
+
 #: tau_a of eq 34, seconds per unit of the Charlie model's non-dimensional time
 CHARLIE_TIME_UNIT_S = 2.1
 

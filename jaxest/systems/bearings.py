@@ -21,6 +21,10 @@ import jax.numpy as jnp
 
 import jaxest as je
 
+__all__ = [
+    "PROCESS_STD", "BEARING_STD", "X0", "PRIOR_STD", "NUM_STEPS", "bearing", "model", "prior",
+]  # fmt: skip
+
 PROCESS_STD, BEARING_STD = 0.001, 0.005
 X0 = (-0.05, 0.001, 0.7, -0.055)
 PRIOR_STD = (0.1, 0.005, 0.1, 0.01)

@@ -19,6 +19,8 @@ import numpy as np
 
 from jaxest.network.structure import LargeScaleSystem
 
+__all__ = ["OFFSETS", "mass_chain", "initial_prior"]
+
 OFFSETS = (-2, -1, 1, 2)  #: neighbour offsets of the four coupling components
 
 

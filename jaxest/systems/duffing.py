@@ -20,6 +20,12 @@ from jaxest.setmembership.ellipsoid import Ellipsoid
 from jaxest.setmembership.smf import BoundedNoiseModel
 from jaxest.systems._box_noise import simulate_box_noise
 
+__all__ = [
+    "T", "K0", "KD", "C", "PROCESS_BOUND", "MEASUREMENT_BOUND", "X0", "P0_SCALE",
+    "FAULT_START", "NUM_STEPS", "Duffing", "observe", "model", "prior", "sensor_bias",
+    "simulate",
+]  # fmt: skip
+
 #: table 1
 T, K0, KD, C = 0.1, 2.1, 3.0, 0.4
 PROCESS_BOUND, MEASUREMENT_BOUND = 0.005, 0.01

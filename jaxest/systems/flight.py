@@ -60,6 +60,13 @@ from jaxtyping import Array, Float
 
 from jaxest.models import NonlinearGaussian, at_time
 
+__all__ = [
+    "GRAVITY", "KINEMATIC_STATES", "PARAMETERS", "STATES", "INPUTS", "OUTPUTS", "N_KIN",
+    "N_PAR", "N_IN", "N_OUT", "N_STATE", "kinematics", "integrate_interval",
+    "FlightTransition", "LeverArms", "FlightObservation", "AT_CG", "SampleNoiseGain",
+    "FlightModel", "flight_model", "interval_inputs", "body_velocity", "pin_parameters",
+]  # fmt: skip
+
 #: standard gravity, m/s^2
 GRAVITY = 9.80665
 

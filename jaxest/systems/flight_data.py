@@ -27,6 +27,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+__all__ = [
+    "DEG", "FOOT", "DATA_ENV", "DEFAULT_DATA_DIR", "DOWNLOAD_HINT", "ATTAS_FILES", "HFB320_FILE", "FlightData",
+    "find_data_dir", "load_attas", "attas_record", "load_hfb320", "advance_channels",
+]  # fmt: skip
+
 DEG = np.pi / 180.0
 FOOT = 0.3048
 

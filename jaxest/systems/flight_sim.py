@@ -36,6 +36,12 @@ from jaxest.systems.flight import (
     kinematics,
 )
 
+__all__ = [
+    "MANEUVERS", "DURATION", "FINE_STEPS", "DEG", "TRIM", "INPUT_STD", "OUTPUT_STD",
+    "PARAMETER_STD", "LEVER_ARMS", "commands", "true_inputs", "TrueFlight", "true_flight",
+    "FlightRecord", "corrupt", "draw_parameters", "initial_guess",
+]  # fmt: skip
+
 MANEUVERS = ("elevator", "aileron", "rudder")
 #: length of every maneuver record, s
 DURATION = 20.0

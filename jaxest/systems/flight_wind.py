@@ -30,6 +30,11 @@ from jaxest._checks import is_concrete
 from jaxest._priors import Gaussian
 from jaxest.models import NonlinearGaussian
 
+__all__ = [
+    "WIND_STATES", "body_from_earth", "WindObservation", "WindModel", "with_wind",
+    "prior_with_wind",
+]  # fmt: skip
+
 #: the states :func:`with_wind` appends: the wind's north, east and down components (m/s)
 WIND_STATES = ("W_N", "W_E", "W_D")
 _N_WIND = len(WIND_STATES)

@@ -11,6 +11,8 @@ import numpy as np
 
 import jaxest as je
 
+__all__ = ["exact_posterior", "problem", "posterior_error"]
+
 
 def exact_posterior(d: float) -> np.ndarray:
     """Closed form of P+, evaluated in extended precision."""

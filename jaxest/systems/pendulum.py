@@ -22,6 +22,12 @@ from jaxest.setmembership.ellipsoid import Ellipsoid
 from jaxest.setmembership.smf import BoundedNoiseModel
 from jaxest.systems._box_noise import simulate_box_noise
 
+__all__ = [
+    "DT", "OMEGA2", "DAMPING", "PROCESS_BOUND", "MEASUREMENT_BOUND", "NUM_SENSORS", "X0",
+    "P0_SCALE", "FAULT_START", "NUM_STEPS", "BIAS", "FAULTY_SENSOR", "transition", "observe",
+    "model", "prior", "sensor_bias", "simulate",
+]  # fmt: skip
+
 DT, OMEGA2, DAMPING = 0.1, 4.0, 0.2
 PROCESS_BOUND = 0.002
 #: angle, rate, sin(angle)

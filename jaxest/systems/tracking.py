@@ -7,6 +7,8 @@ import jax.numpy as jnp
 
 import jaxest as je
 
+__all__ = ["DT", "Q_DIAG", "R_DIAG", "model", "prior"]
+
 DT = 0.1
 #: true process noise (position, position, velocity, velocity) and measurement noise variances
 Q_DIAG = (1e-3, 1e-3, 4e-2, 1e-2)

@@ -14,6 +14,8 @@ import jax.numpy as jnp
 
 from jaxest.models import LinearGaussian
 
+__all__ = ["N", "ARBITRARY_START", "PAPER", "PRINTED_ADJ_K", "paper_model"]
+
 N = 300  #: the fixed interval [0, N]
 ARBITRARY_START = ((10.0, 20.0), (10.0, 20.0))  #: the paper's x(0|300) = x(1|300) = [10, 20]
 
