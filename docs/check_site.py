@@ -1,5 +1,6 @@
 """Open every page of the built site in headless Chromium and fail on broken internal links,
-images that did not load, and notebook cells that raised.
+images that did not load, notebook cells that raised, and API reference pages that show a
+docstring's Sphinx role as text instead of a link (docs/sphinx_roles.py rewrites them).
 
     python docs/check_site.py site
 
@@ -9,6 +10,7 @@ chromium chromium-driver``).
 
 from __future__ import annotations
 
+import re
 import shutil
 import sys
 from pathlib import Path
@@ -16,6 +18,9 @@ from urllib.parse import unquote, urlparse
 
 NOTEBOOK_PAGES = "notebooks"
 RAISED = "Traceback (most recent call last)"
+API_PAGES = "api"
+#: a Sphinx cross-reference role as the page shows it when nothing rewrote it (":class:Gaussian")
+SPHINX_ROLE = re.compile(r":(?:class|func|meth|attr|data|mod|obj|exc|const):\s*\S")
 
 
 def browser():
@@ -47,8 +52,11 @@ def check_page(driver, page: Path) -> list[str]:
         "return Array.from(document.images, i => [i.src, i.complete && i.naturalWidth > 0])"
     )
     problems += [f"image did not load {src[:120]}" for src, ok in images if not ok]
+    text = driver.execute_script("return document.body.innerText")
+    if API_PAGES in page.parts:
+        problems += [f"Sphinx role shown as text: {m[:40]!r}" for m in SPHINX_ROLE.findall(text)]
     if NOTEBOOK_PAGES in page.parts:
-        if RAISED in driver.execute_script("return document.body.innerText"):
+        if RAISED in text:
             problems.append("a notebook cell raised")
         if not any(ok for _, ok in images):
             problems.append("notebook page shows no figure")

@@ -1,0 +1,115 @@
+"""A Griffe extension for the API reference: Sphinx cross-reference roles become links.
+
+jaxest's docstrings cite other objects as Sphinx roles (:class:`~jaxest.Gaussian`,
+:func:`run`), which mkdocstrings' Sphinx docstring style leaves as literal text. After Griffe has
+loaded the package, each role becomes a mkdocs-autorefs link to the object's entry on the site
+where the reference shows it (``[`Gaussian`][jaxest.Gaussian]``), and inline code where it does
+not (a private helper, a module without a page), so that no link is left dangling. Names are
+resolved in the docstring's own scope, as Python resolves them in the module (its imports
+included). The pages and the modules they show are read from ``docs/api/*.md``.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import griffe
+
+#: :role:`target`, :role:`~target` (shows the last part) and :role:`title <target>`
+ROLE = re.compile(r":(class|func|meth|attr|data|mod|obj|exc|const):`([^`]+)`")
+PAGES = Path(__file__).resolve().parent / "api"
+
+
+def documented_modules() -> list[str]:
+    """The modules the API pages show (their ``::: module`` lines)."""
+    return [
+        line.split()[1]
+        for page in sorted(PAGES.glob("*.md"))
+        for line in page.read_text().splitlines()
+        if line.startswith(":::")
+    ]
+
+
+class SphinxRoles(griffe.Extension):
+    """Rewrites the roles of every docstring in a loaded package (module docstring)."""
+
+    def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        shown = self._shown_paths(pkg)
+        for obj in _objects(pkg):
+            if obj.docstring is not None:
+                obj.docstring.value = ROLE.sub(
+                    lambda m: _link(obj, m.group(1), m.group(2), shown), obj.docstring.value
+                )
+
+    @staticmethod
+    def _shown_paths(pkg: griffe.Module) -> dict[str, str]:
+        """Canonical path -> the identifier the reference shows the object under: a documented
+        module's path; ``module.name`` for what its ``__all__`` exports; their classes' own
+        members. Only objects with a docstring (the reference hides the others)."""
+        shown = {}
+        for name in documented_modules():
+            if name != pkg.path and not name.startswith(pkg.path + "."):
+                continue
+            module = pkg if name == pkg.path else pkg.get_member(name.removeprefix(pkg.path + "."))
+            shown[module.path] = module.path
+            for export in module.exports or ():
+                if export not in module.members:  # assigned in a way Griffe does not read
+                    continue
+                target = _final(module.members[export])
+                if target is None or not target.docstring:
+                    continue
+                shown.setdefault(target.path, f"{module.path}.{export}")
+                for member_name, member in target.members.items() if target.is_class else ():
+                    if not member.is_alias and member.docstring and not member_name.startswith("_"):
+                        shown.setdefault(member.path, f"{module.path}.{export}.{member_name}")
+        return shown
+
+
+def _objects(obj: griffe.Object):
+    """``obj`` and every object defined inside it (aliases skipped: their targets are visited)."""
+    yield obj
+    for member in obj.members.values():
+        if not member.is_alias:
+            yield from _objects(member)
+
+
+def _final(obj: griffe.Object | griffe.Alias) -> griffe.Object | None:
+    """What ``obj`` is, past any aliases; None for an alias Griffe cannot follow."""
+    try:
+        return obj.final_target if obj.is_alias else obj
+    except (griffe.AliasResolutionError, griffe.CyclicAliasError):
+        return None
+
+
+def _link(obj: griffe.Object, role: str, text: str, shown: dict[str, str]) -> str:
+    """The Markdown for one role (``role``, ``text``) in ``obj``'s docstring."""
+    title = None
+    if match := re.fullmatch(r"(.+?)\s*<(.+)>", text):
+        title, text = match.groups()
+    short = text.startswith("~")
+    target = text.lstrip("~")
+    title = title or (target.rsplit(".", 1)[-1] if short else target)
+    path = _resolve(obj, target)
+    # a module's name can also be a function's that its package exports (jaxest.network.design)
+    if path in shown and (role != "mod") == (shown[path] not in documented_modules()):
+        return f"[`{title}`][{shown[path]}]"
+    return f"`{title}`"
+
+
+def _resolve(obj: griffe.Object, target: str) -> str | None:
+    """The canonical path ``target`` names in ``obj``'s scope (aliases followed), or None."""
+    head, _, rest = target.partition(".")
+    scope = obj if obj.is_module or obj.is_class else obj.parent
+    try:
+        path = scope.resolve(head)
+    except griffe.NameResolutionError:
+        if head != "jaxest":
+            return None
+        path = head
+    path = f"{path}.{rest}" if rest else path
+    try:
+        found = _final(obj.modules_collection[path])
+    except KeyError:
+        return path
+    return path if found is None else found.path
