@@ -35,20 +35,22 @@ class SphinxRoles(griffe.Extension):
     """Rewrites the roles of every docstring in a loaded package (module docstring)."""
 
     def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
-        shown = self._shown_paths(pkg)
+        modules = documented_modules()
+        shown = self._shown_paths(pkg, modules)
         for obj in _objects(pkg):
             if obj.docstring is not None:
                 obj.docstring.value = ROLE.sub(
-                    lambda m: _link(obj, m.group(1), m.group(2), shown), obj.docstring.value
+                    lambda m: _link(obj, m.group(1), m.group(2), shown, modules),
+                    obj.docstring.value,
                 )
 
     @staticmethod
-    def _shown_paths(pkg: griffe.Module) -> dict[str, str]:
+    def _shown_paths(pkg: griffe.Module, modules: list[str]) -> dict[str, str]:
         """Canonical path -> the identifier the reference shows the object under: a documented
         module's path; ``module.name`` for what its ``__all__`` exports; their classes' own
         members. Only objects with a docstring (the reference hides the others)."""
         shown = {}
-        for name in documented_modules():
+        for name in modules:
             if name != pkg.path and not name.startswith(pkg.path + "."):
                 continue
             module = pkg if name == pkg.path else pkg.get_member(name.removeprefix(pkg.path + "."))
@@ -82,8 +84,11 @@ def _final(obj: griffe.Object | griffe.Alias) -> griffe.Object | None:
         return None
 
 
-def _link(obj: griffe.Object, role: str, text: str, shown: dict[str, str]) -> str:
-    """The Markdown for one role (``role``, ``text``) in ``obj``'s docstring."""
+def _link(
+    obj: griffe.Object, role: str, text: str, shown: dict[str, str], modules: list[str]
+) -> str:
+    """The Markdown for one role (``role``, ``text``) in ``obj``'s docstring; ``shown`` as
+    :meth:`SphinxRoles._shown_paths` makes it, ``modules`` the documented modules."""
     title = None
     if match := re.fullmatch(r"(.+?)\s*<(.+)>", text):
         title, text = match.groups()
@@ -92,7 +97,7 @@ def _link(obj: griffe.Object, role: str, text: str, shown: dict[str, str]) -> st
     title = title or (target.rsplit(".", 1)[-1] if short else target)
     path = _resolve(obj, target)
     # a module's name can also be a function's that its package exports (jaxest.network.design)
-    if path in shown and (role != "mod") == (shown[path] not in documented_modules()):
+    if path in shown and (role == "mod") == (shown[path] in modules):
         return f"[`{title}`][{shown[path]}]"
     return f"`{title}`"
 
