@@ -1,4 +1,4 @@
-"""A Griffe extension for the API reference: Sphinx cross-reference roles become links.
+"""A Griffe extension for the API reference: the Sphinx conventions of jaxest's docstrings.
 
 jaxest's docstrings cite other objects as Sphinx roles (:class:`~jaxest.Gaussian`,
 :func:`run`), which mkdocstrings' Sphinx docstring style leaves as literal text. After Griffe has
@@ -7,6 +7,11 @@ where the reference shows it (``[`Gaussian`][jaxest.Gaussian]``), and inline cod
 not (a private helper, a module without a page), so that no link is left dangling. Names are
 resolved in the docstring's own scope, as Python resolves them in the module (its imports
 included). The pages and the modules they show are read from ``docs/api/*.md``.
+
+Attributes are documented the Sphinx way too, by ``#:`` comments above the assignment or after it
+on the same line, which Griffe does not read (it takes a string after the assignment): they
+become the attributes' docstrings first, so the reference shows the documented constants and
+fields.
 """
 
 from __future__ import annotations
@@ -18,6 +23,9 @@ import griffe
 
 #: :role:`target`, :role:`~target` (shows the last part) and :role:`title <target>`
 ROLE = re.compile(r":(class|func|meth|attr|data|mod|obj|exc|const):`([^`]+)`")
+#: a ``#:`` comment line above an assignment; the same after the assignment on its first line
+COMMENT_ABOVE = re.compile(r"^\s*#:\s?(.*)$")
+COMMENT_AFTER = re.compile(r"\S.*?\s#:\s?(.*)$")
 PAGES = Path(__file__).resolve().parent / "api"
 
 
@@ -32,9 +40,13 @@ def documented_modules() -> list[str]:
 
 
 class SphinxRoles(griffe.Extension):
-    """Rewrites the roles of every docstring in a loaded package (module docstring)."""
+    """Gives attributes their ``#:`` comments as docstrings, then rewrites the roles of every
+    docstring in a loaded package (module docstring)."""
 
     def on_package(self, *, pkg: griffe.Module, **kwargs) -> None:
+        for obj in _objects(pkg):
+            if obj.is_attribute and obj.docstring is None and (text := _comment(obj)):
+                obj.docstring = griffe.Docstring(text, lineno=obj.lineno, parent=obj)
         modules = documented_modules()
         shown = self._shown_paths(pkg, modules)
         for obj in _objects(pkg):
@@ -74,6 +86,22 @@ def _objects(obj: griffe.Object):
     for member in obj.members.values():
         if not member.is_alias:
             yield from _objects(member)
+
+
+def _comment(attribute: griffe.Attribute) -> str | None:
+    """The ``#:`` comment documenting ``attribute``: on its line after the assignment, or the
+    comment lines right above it; None where there is none."""
+    if attribute.lineno is None or attribute.filepath is None:
+        return None
+    lines = attribute.lines_collection[attribute.filepath]
+    if match := COMMENT_AFTER.match(lines[attribute.lineno - 1].strip()):
+        return match.group(1)
+    above = []
+    for line in reversed(lines[: attribute.lineno - 1]):
+        if not (match := COMMENT_ABOVE.match(line)):
+            break
+        above.insert(0, match.group(1))
+    return "\n".join(above) or None
 
 
 def _final(obj: griffe.Object | griffe.Alias) -> griffe.Object | None:
