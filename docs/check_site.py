@@ -16,11 +16,13 @@ import sys
 from pathlib import Path
 from urllib.parse import unquote, urlparse
 
+from sphinx_roles import ROLE_NAMES  # docs/, beside this script
+
 NOTEBOOK_PAGES = "notebooks"
 RAISED = "Traceback (most recent call last)"
 API_PAGES = "api"
 #: a Sphinx cross-reference role as the page shows it when nothing rewrote it (":class:Gaussian")
-SPHINX_ROLE = re.compile(r":(?:class|func|meth|attr|data|mod|obj|exc|const):\s*\S")
+SPHINX_ROLE = re.compile(rf":(?:{ROLE_NAMES}):\s*\S")
 
 
 def browser():

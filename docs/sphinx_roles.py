@@ -21,8 +21,10 @@ from pathlib import Path
 
 import griffe
 
+#: the Sphinx cross-reference roles jaxest's docstrings use (docs/check_site.py looks for them)
+ROLE_NAMES = "class|func|meth|attr|data|mod|obj|exc|const"
 #: :role:`target`, :role:`~target` (shows the last part) and :role:`title <target>`
-ROLE = re.compile(r":(class|func|meth|attr|data|mod|obj|exc|const):`([^`]+)`")
+ROLE = re.compile(rf":({ROLE_NAMES}):`([^`]+)`")
 #: a ``#:`` comment line above an assignment; the same after the assignment on its first line
 COMMENT_ABOVE = re.compile(r"^\s*#:\s?(.*)$")
 COMMENT_AFTER = re.compile(r"\S.*?\s#:\s?(.*)$")
