@@ -16,6 +16,7 @@ fields.
 
 from __future__ import annotations
 
+import importlib.util
 import re
 from pathlib import Path
 
@@ -28,17 +29,18 @@ ROLE = re.compile(rf":({ROLE_NAMES}):`([^`]+)`")
 #: a ``#:`` comment line above an assignment; the same after the assignment on its first line
 COMMENT_ABOVE = re.compile(r"^\s*#:\s?(.*)$")
 COMMENT_AFTER = re.compile(r"\S.*?\s#:\s?(.*)$")
-PAGES = Path(__file__).resolve().parent / "api"
 
 
-def documented_modules() -> list[str]:
-    """The modules the API pages show (their ``::: module`` lines)."""
-    return [
-        line.split()[1]
-        for page in sorted(PAGES.glob("*.md"))
-        for line in page.read_text().splitlines()
-        if line.startswith(":::")
-    ]
+def _load_sibling(name: str):
+    """``docs/<name>.py`` as a module: Griffe loads this extension from its path, with docs/ not
+    on ``sys.path``."""
+    spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name(f"{name}.py"))
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+documented_modules = _load_sibling("api_pages").documented_modules
 
 
 class SphinxRoles(griffe.Extension):
