@@ -26,9 +26,6 @@ import griffe
 ROLE_NAMES = "class|func|meth|attr|data|mod|obj|exc|const"
 #: :role:`target`, :role:`~target` (shows the last part) and :role:`title <target>`
 ROLE = re.compile(rf":({ROLE_NAMES}):`([^`]+)`")
-#: a ``#:`` comment line above an assignment; the same after the assignment on its first line
-COMMENT_ABOVE = re.compile(r"^\s*#:\s?(.*)$")
-COMMENT_AFTER = re.compile(r"\S.*?\s#:\s?(.*)$")
 
 
 def _load_sibling(name: str):
@@ -40,7 +37,8 @@ def _load_sibling(name: str):
     return module
 
 
-documented_modules = _load_sibling("api_pages").documented_modules
+_api_pages = _load_sibling("api_pages")
+documented_modules, attribute_comment = _api_pages.documented_modules, _api_pages.attribute_comment
 
 
 class SphinxRoles(griffe.Extension):
@@ -93,19 +91,11 @@ def _objects(obj: griffe.Object):
 
 
 def _comment(attribute: griffe.Attribute) -> str | None:
-    """The ``#:`` comment documenting ``attribute``: on its line after the assignment, or the
-    comment lines right above it; None where there is none."""
+    """The ``#:`` comment documenting ``attribute`` (docs/api_pages.py says where it is looked
+    for); None where there is none."""
     if attribute.lineno is None or attribute.filepath is None:
         return None
-    lines = attribute.lines_collection[attribute.filepath]
-    if match := COMMENT_AFTER.match(lines[attribute.lineno - 1].strip()):
-        return match.group(1)
-    above = []
-    for line in reversed(lines[: attribute.lineno - 1]):
-        if not (match := COMMENT_ABOVE.match(line)):
-            break
-        above.insert(0, match.group(1))
-    return "\n".join(above) or None
+    return attribute_comment(attribute.lines_collection[attribute.filepath], attribute.lineno)
 
 
 def _final(obj: griffe.Object | griffe.Alias) -> griffe.Object | None:

@@ -68,3 +68,30 @@ def defined_names(module) -> set[str]:
             targets = node.targets if isinstance(node, ast.Assign) else [node.target]
             names |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
     return names
+
+
+@pytest.mark.parametrize("name", documented_modules())
+def test_every_exported_constant_is_documented(name):
+    """The reference shows a module's constant only with its documentation, a ``#:`` comment
+    (which the site's Griffe extension reads) or a string after the assignment, and only where
+    it is assigned alone: Griffe does not see names unpacked from a tuple (``A, B = 1, 2``)."""
+    module = importlib.import_module(name)
+    exported = set(module.__all__)
+    lines = Path(module.__file__).read_text().splitlines()
+    body = ast.parse("\n".join(lines)).body
+    undocumented = []
+    for node, after in zip(body, [*body[1:], None], strict=True):
+        targets = node.targets if isinstance(node, ast.Assign) else [getattr(node, "target", None)]
+        for target in targets:
+            if isinstance(target, ast.Tuple):
+                unpacked = {n.id for n in ast.walk(target) if isinstance(n, ast.Name)}
+                undocumented += [f"{n} (unpacked)" for n in sorted(unpacked & exported)]
+            elif isinstance(target, ast.Name) and target.id in exported:
+                string_after = (
+                    isinstance(after, ast.Expr)
+                    and isinstance(after.value, ast.Constant)
+                    and isinstance(after.value.value, str)
+                )
+                if not (string_after or _api_pages().attribute_comment(lines, node.lineno)):
+                    undocumented.append(target.id)
+    assert not undocumented, f"{name}: document (or assign alone) {undocumented}"

@@ -26,8 +26,9 @@ __all__ = [
 #: tau_a of eq 34, seconds per unit of the Charlie model's non-dimensional time
 CHARLIE_TIME_UNIT_S = 2.1
 
-#: the parameter values the paper simulates: Charlie theta = 2, Boeing 747 theta = [0.9, 3]
+#: the parameter value the paper simulates for Charlie: theta = 2
 CHARLIE_THETA = (2.0,)
+#: the parameter values the paper simulates for the Boeing 747: theta = [0.9, 3]
 B747_THETA = (0.9, 3.0)
 
 
@@ -62,10 +63,11 @@ def b747(printed: bool = False) -> tuple[np.ndarray, np.ndarray]:
     return A, B
 
 
-#: measured outputs (rows of the identity): Charlie measures airspeed, pitch angle and pitch
-#: rate (not the angle of attack); the 747 measures yaw rate, roll rate and roll angle (not the
-#: sideslip). Both pairs (A, C) are observable.
+#: Charlie's measured outputs (rows of the identity): airspeed, pitch angle and pitch rate (not
+#: the angle of attack); (A, C) is observable
 CHARLIE_OUTPUTS = (0, 2, 3)
+#: the 747's measured outputs (rows of the identity): yaw rate, roll rate and roll angle (not
+#: the sideslip); (A, C) is observable
 B747_OUTPUTS = (1, 2, 3)
 
 

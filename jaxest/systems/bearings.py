@@ -25,9 +25,15 @@ __all__ = [
     "PROCESS_STD", "BEARING_STD", "X0", "PRIOR_STD", "NUM_STEPS", "bearing", "model", "prior",
 ]  # fmt: skip
 
-PROCESS_STD, BEARING_STD = 0.001, 0.005
+#: q: standard deviation of each component of the process noise w_k (x and y, through G)
+PROCESS_STD = 0.001
+#: r: standard deviation of the bearing noise v_k, rad
+BEARING_STD = 0.005
+#: the true initial state (x, x', y, y'), also the prior's mean
 X0 = (-0.05, 0.001, 0.7, -0.055)
+#: standard deviations of the prior about X0, per state
 PRIOR_STD = (0.1, 0.005, 0.1, 0.01)
+#: steps of a simulated track
 NUM_STEPS = 24
 
 

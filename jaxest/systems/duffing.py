@@ -26,13 +26,26 @@ __all__ = [
     "simulate",
 ]  # fmt: skip
 
-#: table 1
-T, K0, KD, C = 0.1, 2.1, 3.0, 0.4
-PROCESS_BOUND, MEASUREMENT_BOUND = 0.005, 0.01
+#: sampling interval T of the Euler discretisation (table 1)
+T = 0.1
+#: stiffness k0 (table 1)
+K0 = 2.1
+#: cubic stiffness kd (table 1)
+KD = 3.0
+#: damping c (table 1)
+C = 0.4
+#: bound on each component of the process noise, |w_i| <= PROCESS_BOUND
+PROCESS_BOUND = 0.005
+#: bound on each component of the measurement noise, |v_i| <= MEASUREMENT_BOUND
+MEASUREMENT_BOUND = 0.01
+#: the initial state x_0 and the centre of the prior set E_0
 X0 = (0.2, 0.3)
+#: the prior set E_0 = E(X0, P0_SCALE I)
 P0_SCALE = 0.01
-#: fault protocol: bias on sensor 1 from paper step FAULT_START to NUM_STEPS (inclusive)
-FAULT_START, NUM_STEPS = 50, 100
+#: the paper step from which sensor 1 is biased, up to NUM_STEPS inclusive
+FAULT_START = 50
+#: N, the paper steps of a run (measurements y_1..y_N)
+NUM_STEPS = 100
 
 
 class Duffing(eqx.Module):

@@ -70,17 +70,33 @@ __all__ = [
 #: standard gravity, m/s^2
 GRAVITY = 9.80665
 
+#: the kinematic states: body velocities u, v, w (m/s), Euler angles phi, theta, psi (rad)
+#: and altitude h (m)
 KINEMATIC_STATES = ("u", "v", "w", "phi", "theta", "psi", "h")
+#: the augmented parameters: biases b_* of the six inputs and six outputs, and scale-factor
+#: errors lam_* of four outputs (measured = (1 + lam) true + b)
 PARAMETERS = (
     "b_ax", "b_ay", "b_az", "b_p", "b_q", "b_r",
     "b_V", "b_beta", "b_alpha", "b_theta", "b_phi", "b_h",
     "lam_V", "lam_beta", "lam_alpha", "lam_h",
 )  # fmt: skip
+#: the filter's state: the kinematic states, then the parameters
 STATES = KINEMATIC_STATES + PARAMETERS
+#: the measured inputs: accelerations a_x, a_y, a_z (m/s^2) and body rates p, q, r (rad/s)
 INPUTS = ("a_x", "a_y", "a_z", "p", "q", "r")
+#: the measured outputs: airspeed V, sideslip beta, angle of attack alpha, pitch and roll
+#: angles theta, phi, altitude h
 OUTPUTS = ("V", "beta", "alpha", "theta", "phi", "h")
 
-N_KIN, N_PAR, N_IN, N_OUT = len(KINEMATIC_STATES), len(PARAMETERS), len(INPUTS), len(OUTPUTS)
+#: number of kinematic states
+N_KIN = len(KINEMATIC_STATES)
+#: number of augmented parameters
+N_PAR = len(PARAMETERS)
+#: number of inputs
+N_IN = len(INPUTS)
+#: number of outputs
+N_OUT = len(OUTPUTS)
+#: number of states of the filter (kinematic states and parameters)
 N_STATE = N_KIN + N_PAR
 
 

@@ -32,7 +32,9 @@ __all__ = [
     "find_data_dir", "load_attas", "attas_record", "load_hfb320", "advance_channels",
 ]  # fmt: skip
 
+#: radians per degree (the files give angles in degrees)
 DEG = np.pi / 180.0
+#: metres per foot (the files give altitude in feet)
 FOOT = 0.3048
 
 #: environment variable naming the data directory (used when no directory is given)
@@ -40,6 +42,7 @@ DATA_ENV = "JAXEST_FLIGHT_DATA"
 #: where the files are looked for otherwise: ../shared/data/flight beside the repository
 DEFAULT_DATA_DIR = Path(__file__).resolve().parents[3] / "shared" / "data" / "flight"
 
+#: where the files come from, appended to the errors for a missing directory or file
 DOWNLOAD_HINT = (
     "The flight data are the files of flt_data.zip, the supplementary material of R. V. Jategaonkar, "
     "'Flight Vehicle System Identification - A Time Domain Methodology' (AIAA, Progress in "
@@ -54,6 +57,7 @@ ATTAS_FILES = {
     "aileron": "fAttasAil1_pqrDot.asc",
     "rudder": "fAttasRud1_pqrDot.asc",
 }
+#: the HFB-320 record's file
 HFB320_FILE = "hfb320_1_10.asc"
 
 # 0-based columns (README.txt numbers minus one) and the factor to SI units

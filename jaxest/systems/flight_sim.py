@@ -42,12 +42,14 @@ __all__ = [
     "FlightRecord", "corrupt", "draw_parameters", "initial_guess",
 ]  # fmt: skip
 
+#: the simulated maneuvers, one record each
 MANEUVERS = ("elevator", "aileron", "rudder")
 #: length of every maneuver record, s
 DURATION = 20.0
 #: fine integration steps per sample
 FINE_STEPS = 16
 
+#: radians per degree
 DEG = np.pi / 180.0
 
 #: trim condition: airspeed (m/s), alpha = theta (rad), heading (rad), altitude (m)

@@ -28,17 +28,30 @@ __all__ = [
     "model", "prior", "sensor_bias", "simulate",
 ]  # fmt: skip
 
-DT, OMEGA2, DAMPING = 0.1, 4.0, 0.2
+#: sampling interval of the Euler discretisation, s
+DT = 0.1
+#: squared natural frequency, 1/s^2
+OMEGA2 = 4.0
+#: damping, 1/s
+DAMPING = 0.2
+#: bound on each component of the process noise, |w_i| <= PROCESS_BOUND
 PROCESS_BOUND = 0.002
-#: angle, rate, sin(angle)
+#: bounds on the three sensors' noise: angle, rate, sin(angle)
 MEASUREMENT_BOUND = (0.02, 0.05, 0.02)
+#: number of sensors
 NUM_SENSORS = len(MEASUREMENT_BOUND)
+#: the centre of the prior set E_0 (angle, rate)
 X0 = (0.8, 0.0)
+#: the prior set E_0 = E(X0, P0_SCALE I)
 P0_SCALE = 0.01
-#: fault protocol: a bias BIAS on sensor FAULTY_SENSOR (0-based: the angle) from step
-#: FAULT_START to NUM_STEPS (inclusive)
-FAULT_START, NUM_STEPS = 50, 100
-BIAS, FAULTY_SENSOR = 0.03, 0
+#: the step from which sensor FAULTY_SENSOR carries the bias BIAS, up to NUM_STEPS inclusive
+FAULT_START = 50
+#: N, the steps of a run (measurements y_1..y_N)
+NUM_STEPS = 100
+#: the fault: a bias on sensor FAULTY_SENSOR
+BIAS = 0.03
+#: the faulty sensor, 0-based (0: the angle)
+FAULTY_SENSOR = 0
 
 
 def transition(x: Float[Array, " 2"]) -> Float[Array, " 2"]:

@@ -9,9 +9,11 @@ import jaxest as je
 
 __all__ = ["DT", "Q_DIAG", "R_DIAG", "model", "prior"]
 
+#: sampling interval, s
 DT = 0.1
-#: true process noise (position, position, velocity, velocity) and measurement noise variances
+#: true process noise variances (position, position, velocity, velocity)
 Q_DIAG = (1e-3, 1e-3, 4e-2, 1e-2)
+#: true measurement noise variances (the two positions)
 R_DIAG = (0.04, 0.09)
 
 
