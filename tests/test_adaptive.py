@@ -331,6 +331,67 @@ def test_discrete_form_matches_numpy_and_converges():
         assert float(jnp.linalg.norm(res.x[-1] - sim.states[-1])) < error[-1]  # x follows theta
 
 
+class StackedRegressor(eqx.Module):
+    """Phi_k read from an array stacked over time (arrays, so new draws reuse the program)."""
+
+    Phi: jax.Array
+
+    def __call__(self, k, u, y):
+        return self.Phi[k]
+
+
+def augmented_kalman_filter(F, B, H, Phi, Q, R, x0, P0, theta0, S0, ys, us):
+    """Plain NumPy Kalman filter on z = (x, theta), theta constant: z_{k+1} = [[F, Phi_k], [0, I]]
+    z_k + (B u_k, 0) + (w_k, 0), y_k = [H, 0] z_k + v_k, NaN entries of y_k not measured. Returns
+    the filtered x and theta."""
+    n, p = F.shape[0], Phi.shape[-1]
+    z = np.concatenate([x0, theta0])
+    P = scipy.linalg.block_diag(P0, S0)
+    H_aug = np.hstack([H, np.zeros((H.shape[0], p))])
+    filtered = []
+    for k, (y, u) in enumerate(zip(ys, us, strict=True)):
+        seen = ~np.isnan(y)
+        Hk = H_aug[seen]
+        gain = P @ Hk.T @ np.linalg.inv(Hk @ P @ Hk.T + R[np.ix_(seen, seen)])
+        z, P = z + gain @ (y[seen] - Hk @ z), (np.eye(n + p) - gain @ Hk) @ P
+        filtered.append(z.copy())
+        F_aug = np.block([[F, Phi[k]], [np.zeros((p, n)), np.eye(p)]])
+        z = F_aug @ z + np.concatenate([B @ u, np.zeros(p)])
+        P = F_aug @ P @ F_aug.T + scipy.linalg.block_diag(Q, np.zeros((p, p)))
+    filtered = np.array(filtered)
+    return filtered[:, :n], filtered[:, n:]
+
+
+def test_discrete_form_without_forgetting_is_the_augmented_kalman_filter():
+    """With forgetting 1 the discrete observer is the Kalman filter on (x, theta), theta constant
+    (its docstring says why): random systems, a time-varying regressor and missing entries,
+    against a NumPy augmented filter, with no argument in common but the data."""
+    rng = np.random.default_rng(3)
+    n, m, p, inputs, T = 3, 2, 2, 2, 40
+    observer = DiscreteAdaptiveObserver(
+        Q=jnp.eye(n), R=jnp.eye(m), forgetting=1.0, excitation_window=5, excitation_threshold=0.0
+    )
+    for _ in range(3):  # one program: the draws differ in values only
+        F = 0.9 * rng.standard_normal((n, n)) / np.sqrt(n)
+        B, H = rng.standard_normal((n, inputs)), rng.standard_normal((m, n))
+        Phi = rng.standard_normal((T, n, p))
+        A, C = rng.standard_normal((n, n)), rng.standard_normal((m, m))
+        Q, R = 0.01 * A @ A.T + 1e-3 * np.eye(n), 0.1 * C @ C.T + 0.05 * np.eye(m)
+        x0, P0 = rng.standard_normal(n), rng.uniform(0.1, 2) * np.eye(n)
+        theta0, S0 = rng.standard_normal(p), rng.uniform(0.1, 5) * np.eye(p)
+        ys, us = rng.standard_normal((T, m)), rng.standard_normal((T, inputs))
+        ys[rng.random(ys.shape) < 0.1] = np.nan
+        ys[5] = np.nan
+        xs, thetas = augmented_kalman_filter(F, B, H, Phi, Q, R, x0, P0, theta0, S0, ys, us)
+        model = DiscreteLTV(*map(jnp.asarray, (F, B, H)), StackedRegressor(jnp.asarray(Phi)))
+        prior = ObserverPrior(*map(jnp.asarray, (x0, theta0, P0, S0)))
+        tuned = eqx.tree_at(lambda o: (o.Q, o.R), observer, (jnp.asarray(Q), jnp.asarray(R)))
+        result = run(tuned, model, jnp.asarray(ys), inputs=jnp.asarray(us), prior=prior)
+        assert np.all(np.asarray(result.status) == Status.OK)
+        np.testing.assert_allclose(result.x, xs, rtol=1e-10, atol=1e-12)
+        np.testing.assert_allclose(result.theta, thetas, rtol=1e-10, atol=1e-12)
+
+
 def test_missing_measurements_are_not_measured():
     """NaN in y (the protocol's missing data) drops those rows: the discrete form equals a NumPy
     recursion that deletes them, and noise-free both forms still converge, the continuous one

@@ -448,7 +448,8 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
 
     With lambda_k = lambda and no J_0 term this is the paper's recursion (S_theta <- (S_theta -
     S_theta Omega^T Lambda Omega S_theta) / lambda); M_k is the information y_k carries about
-    theta.
+    theta. With ``forgetting = 1`` it is the Kalman filter on the augmented state (x, theta),
+    theta constant (docs/papers/adaptive.md, "Discrete adaptive Kalman form").
 
     **Excitation monitor** (the discrete counterpart of eq 16): W_k, the sum of M_j over the last
     ``excitation_window`` steps (j <= k), is the information the window's measurements carry
