@@ -39,8 +39,14 @@ Forward solver, in two stages:
 The status check: ``NONFINITE``; ``NOT_STABILISING`` when the closed loop's decay margin
 (1 - rho(A_c), resp. -max Re lambda(A_c) / |A_c|) is below 10 sqrt(eps) -- where no stabilising
 solution exists, Newton stalls with a closed-loop mode within about sqrt(eps) of the boundary;
-``INACCURATE`` when Newton did not converge or the residual is above sqrt(eps) relative to the
-equation's terms.
+``INACCURATE`` when the residual is above sqrt(eps) relative to the equation's terms, when Newton
+did not converge (unless the residual is at rounding level, eps: where the solution is 0, Q = 0
+with A stable, the iterates shrink towards it without settling relative to themselves), or, for
+the CARE, when rounding R can move the residual as evaluated by more than that
+(:func:`_care_rounding`: a nearly singular R not aligned with the axes, in float32 from
+cond(R) ~ 1e4; the residual, evaluated through the same Cholesky factor as the solution, cannot
+see it). The DARE's closed-loop residual needs no such test: it is second order in the error
+of K.
 
 Gradients (reverse mode) come from implicit differentiation: the derivative dX of either
 equation solves a Stein (discrete) or Lyapunov (continuous) equation in A_c, so the cotangent
@@ -92,9 +98,10 @@ RiccatiStatus = Status.extend(
     ),
     INACCURATE=(
         128,
-        "Newton's refinement did not converge or the Riccati residual is above sqrt(eps) "
-        "relative to the equation's terms: the equation is too ill-conditioned for this "
-        "precision; use float64 or rescale the states",
+        "Newton's refinement did not converge, the Riccati residual is above sqrt(eps) "
+        "relative to the equation's terms, or (continuous time) rounding R can move it by "
+        "more: the equation is too ill-conditioned for this precision; use float64 or "
+        "rescale the states",
     ),
 )
 """The Riccati solvers' status flags: the core's and their own."""
@@ -431,21 +438,40 @@ def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
     """X with its gain and status (module docstring: the status check)."""
     terms = _dare_terms if discrete else _care_terms
     K = terms(A, B, Q, R, X)[0]  # differentiable through X
-    _, Ac, residual, scale = terms(*jax.lax.stop_gradient((A, B, Q, R, X)))
+    values = jax.lax.stop_gradient((A, B, Q, R, X))  # the status carries no gradient
+    K_value, Ac, residual, scale = terms(*values)
     eps = jnp.finfo(X.dtype).eps
-    relative = jnp.linalg.norm(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
+    norm = jnp.linalg.norm
+    relative = norm(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
     if discrete:
         margin = -_log_spectral_radius(Ac)
+        uncertified = False
     else:
-        norm = jnp.maximum(jnp.max(jnp.abs(Ac)), jnp.finfo(X.dtype).tiny)
-        margin = -_log_spectral_radius(jax.scipy.linalg.expm(Ac / norm))
+        size = jnp.maximum(jnp.max(jnp.abs(Ac)), jnp.finfo(X.dtype).tiny)
+        margin = -_log_spectral_radius(jax.scipy.linalg.expm(Ac / size))
+        uncertified = norm(_care_rounding(values[3], K_value)) > jnp.sqrt(eps) * scale
     finite = jnp.all(jnp.isfinite(X)) & jnp.all(jnp.isfinite(K))
+    converged = converged | (relative <= eps)
     status = (
         status_where(~finite, RiccatiStatus.NONFINITE)
         | status_where(~(margin > MARGIN_FACTOR * jnp.sqrt(eps)), RiccatiStatus.NOT_STABILISING)
-        | status_where(~converged | ~(relative <= jnp.sqrt(eps)), RiccatiStatus.INACCURATE)
+        | status_where(
+            ~converged | ~(relative <= jnp.sqrt(eps)) | uncertified, RiccatiStatus.INACCURATE
+        )
     )
     return RiccatiSolution(X, K, status, relative, margin)
+
+
+def _care_rounding(R, K):
+    """How far rounding R can move the CARE residual as :func:`_care_terms` evaluates it,
+    eps |K|^T |L| |L|^T |K| (entrywise absolute values): its term V^T V = K^T R K takes R^-1
+    through R's Cholesky factor L, which is exact for a perturbed R + dR with |dR| of order
+    eps |L| |L|^T entrywise (the factorisation's backward error, Higham 2002, thm 10.3), and dR
+    moves V^T V by K^T dR K to first order. It is small where R is well conditioned or diagonal
+    (whatever its scales) and large where a nearly singular R is not aligned with the axes."""
+    L = jnp.abs(cholesky(R))
+    K = jnp.abs(K)
+    return jnp.finfo(R.dtype).eps * K.T @ (L @ L.T) @ K
 
 
 # --------------------------------------------------------------------------- argument checks
