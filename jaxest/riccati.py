@@ -39,14 +39,13 @@ Forward solver, in two stages:
 The status check: ``NONFINITE``; ``NOT_STABILISING`` when the closed loop's decay margin
 (1 - rho(A_c), resp. -max Re lambda(A_c) / |A_c|) is below 10 sqrt(eps) -- where no stabilising
 solution exists, Newton stalls with a closed-loop mode within about sqrt(eps) of the boundary;
-``INACCURATE`` when the residual is above sqrt(eps) relative to the equation's terms, when Newton
-did not converge (unless the residual is at rounding level, eps: where the solution is 0, Q = 0
-with A stable, the iterates shrink towards it without settling relative to themselves), or, for
-the CARE, when rounding R can move the residual as evaluated by more than that
-(:func:`_care_rounding`: a nearly singular R not aligned with the axes, in float32 from
-cond(R) ~ 1e4; the residual, evaluated through the same Cholesky factor as the solution, cannot
-see it). The DARE's closed-loop residual needs no such test: it is second order in the error
-of K.
+``INACCURATE`` when the residual, relative to |X| times the size of its derivative in X (plus
+|Q|; so it estimates X's relative error), is above sqrt(eps); when the residual cannot certify
+that much because its own rounding level is higher (the terms before cancellation: |K|^2 |R|
+in the DARE's closed-loop form, where a nearly singular R meets a small X; and in the CARE
+what rounding R moves it by through R's Cholesky factor, :func:`_care_rounding`, which the
+residual, evaluated through the same factor as the solution, cannot see); or when Newton did
+not converge.
 
 Gradients (reverse mode) come from implicit differentiation: the derivative dX of either
 equation solves a Stein (discrete) or Lyapunov (continuous) equation in A_c, so the cotangent
@@ -79,6 +78,8 @@ _MAX_ITERATIONS = 100
 #: Newton steps at most: enough to walk from the regularised start down to rounding level in
 #: the linearly convergent case of a mode on the boundary
 _MAX_NEWTON = 50
+#: an iterate below _COLLAPSE n eps times the last is taken for 0 (:func:`_newton`)
+_COLLAPSE = 64
 #: squarings of the closed loop in :func:`_log_spectral_radius` (powers up to 2^40)
 _SQUARINGS = 40
 #: a closed-loop margin below MARGIN_FACTOR sqrt(eps) is reported as not stabilising
@@ -98,10 +99,10 @@ RiccatiStatus = Status.extend(
     ),
     INACCURATE=(
         128,
-        "Newton's refinement did not converge, the Riccati residual is above sqrt(eps) "
-        "relative to the equation's terms, or (continuous time) rounding R can move it by "
-        "more: the equation is too ill-conditioned for this precision; use float64 or "
-        "rescale the states",
+        "Newton's refinement did not converge, or the Riccati residual is above sqrt(eps) "
+        "relative to |X| times its derivative's size, or its own rounding level is: the "
+        "equation is too ill-conditioned for this precision; use float64 or rescale the "
+        "states",
     ),
 )
 """The Riccati solvers' status flags: the core's and their own."""
@@ -112,8 +113,9 @@ class RiccatiSolution(eqx.Module):
 
     ``X`` the stabilising solution; ``K`` its gain (control forms: u = -K x with closed loop
     A - B K; filter forms: the gain with closed loop F - K H); ``status`` the
-    :class:`RiccatiStatus` bits (0 = OK); ``residual`` the residual's largest entry relative to
-    the largest of the equation's terms; ``margin`` the closed loop's decay margin,
+    :class:`RiccatiStatus` bits (0 = OK); ``residual`` the residual's norm relative to |Q| + |X|
+    times the size of its derivative in X (an estimate of X's relative error; module
+    docstring); ``margin`` the closed loop's decay margin,
     -log rho(A - B K) ~ 1 - rho (discrete) or -max Re lambda(A - B K) / |A - B K| (continuous),
     negative when it is unstable.
     """
@@ -167,7 +169,9 @@ def _newton(step, X0):
     eps), when a step's linear solve fails, or after ``_MAX_NEWTON`` steps. A stabilising
     solution on the stability boundary makes Newton converge only linearly (the correction
     halves each step); it then goes on to rounding level, which leaves the closed-loop mode
-    within about sqrt(eps) of the boundary for the status check.
+    within about sqrt(eps) of the boundary for the status check. An iterate below
+    ``_COLLAPSE`` n eps times the one before is the solution 0 (and if it is not, the next step
+    goes on from 0).
     Returns (X, converged): converged when the last accepted correction was below sqrt(eps)."""
     eps = jnp.finfo(X0.dtype).eps
     tol = jnp.sqrt(eps)
@@ -179,6 +183,10 @@ def _newton(step, X0):
     def body(state):
         X, change, k, _ = state
         X_new, solved = step(X)
+        # where the solution is 0 (Q = 0 with A stable) each correction cancels X to rounding,
+        # and the iterates would shrink by 3-20 eps a step (n = 5) without settling: they are 0
+        collapsed = jnp.max(jnp.abs(X_new)) <= _COLLAPSE * X.shape[-1] * eps * jnp.max(jnp.abs(X))
+        X_new = jnp.where(collapsed, 0, X_new)
         new_change = _relative_change(X_new, X)
         accept = solved & jnp.isfinite(new_change)
         stalled = (new_change <= tol) & (new_change > 0.75 * change)
@@ -268,27 +276,31 @@ def _regularised(Q, G):
 
 
 def _dare_terms(A, B, Q, R, X):
-    """(K, A_c, residual, scale) at X: K = (R + B^T X B)^-1 B^T X A (no R^-1), A_c = A - B K
-    and the residual in closed-loop form Q + A_c^T X A_c + K^T R K - X, which differs from the
-    DARE's by (K - K*)^T (R + B^T X B) (K - K*) only (second order in the error of K; measured
-    more accurate than the DARE's own form). ``scale`` = |Q| + (|A_c|^2 + 1) |X| + |K|^2 |R|
-    (Frobenius norms): the size of the terms and of the derivative N -> A_c^T N A_c - N at X."""
+    """(K, A_c, residual, scale, floor) at X: K = (R + B^T X B)^-1 B^T X A (no R^-1),
+    A_c = A - B K and the residual in closed-loop form Q + A_c^T X A_c + K^T R K - X, which
+    differs from the DARE's by (K - K*)^T (R + B^T X B) (K - K*) only (second order in the error
+    of K; measured more accurate than the DARE's own form). ``scale`` = |Q| + (|A_c|^2 + 1) |X|
+    (Frobenius norms): |X| times the size of the derivative N -> A_c^T N A_c - N, so that
+    residual / scale estimates X's relative error. ``floor`` adds |K|^2 |R|, the size K^T R K can
+    have before cancellation: eps ``floor`` is the residual's rounding level."""
     BtX = B.T @ X
     K = cho_solve_lower(cholesky(symmetrize(R + BtX @ B)), BtX @ A)
     Ac = A - B @ K
     residual = symmetrize(Q + Ac.T @ X @ Ac + K.T @ R @ K - X)
     norm = jnp.linalg.norm
-    scale = norm(Q) + (norm(Ac) ** 2 + 1) * norm(X) + norm(K) ** 2 * norm(R)
-    return K, Ac, residual, scale
+    scale = norm(Q) + (norm(Ac) ** 2 + 1) * norm(X)
+    return K, Ac, residual, scale, scale + norm(K) ** 2 * norm(R)
 
 
 def _care_terms(A, B, Q, R, X):
-    """(K, A_c, residual, scale) at X: with V = L^-1 B^T X (L L^T = R), K = L^-T V,
+    """(K, A_c, residual, scale, floor) at X: with V = L^-1 B^T X (L L^T = R), K = L^-T V,
     A_c = A - B K and the residual Q + A^T X + X A - V^T V (measured more accurate than the
     closed-loop form, whose A_c is large when R is nearly singular). ``scale`` =
-    |Q| + 2 |A_c| |X| + |V|^2 (Frobenius norms): the size of the terms and of the derivative
-    N -> A_c^T N + N A_c at X -- an X off by eps |X| along a fast closed-loop mode leaves a
-    residual of |A_c| eps |X|."""
+    |Q| + 2 |A_c| |X| (Frobenius norms): |X| times the size of the derivative
+    N -> A_c^T N + N A_c, so that residual / scale estimates X's relative error (an X off by
+    eps |X| along a fast closed-loop mode leaves a residual of |A_c| eps |X|). ``floor`` adds
+    2 |A| |X| + |V|^2, the size the other terms can have before cancellation: eps ``floor`` is
+    the residual's rounding level (and :func:`_care_rounding` what rounding R adds)."""
     L = cholesky(R)
     V = solve_triangular(L, B.T @ X, lower=True)
     K = solve_triangular(L.T, V, lower=False)
@@ -296,7 +308,8 @@ def _care_terms(A, B, Q, R, X):
     residual = symmetrize(Q + XA + XA.T - V.T @ V)
     norm = jnp.linalg.norm
     Ac = A - B @ K
-    return K, Ac, residual, norm(Q) + 2 * norm(Ac) * norm(X) + norm(V) ** 2
+    scale = norm(Q) + 2 * norm(Ac) * norm(X)
+    return K, Ac, residual, scale, scale + 2 * norm(A) * norm(X) + norm(V) ** 2
 
 
 # --------------------------------------------------------------------------- forward solvers
@@ -329,7 +342,7 @@ def _dare_solve(A, B, Q, R):
     Q = symmetrize(Q)
 
     def step(X):
-        _, Ac, residual, _ = _dare_terms(A, B, Q, R, X)
+        _, Ac, residual, _, _ = _dare_terms(A, B, Q, R, X)
         N, solved = _stein(Ac.T, residual)
         return symmetrize(X + N), solved
 
@@ -366,7 +379,7 @@ def _care_solve(A, B, Q, R):
     Q = symmetrize(Q)
 
     def step(X):
-        _, Ac, residual, _ = _care_terms(A, B, Q, R, X)
+        _, Ac, residual, _, _ = _care_terms(A, B, Q, R, X)
         N, solved = _lyapunov(Ac.T, residual)
         return symmetrize(X + N), solved
 
@@ -439,19 +452,20 @@ def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
     terms = _dare_terms if discrete else _care_terms
     K = terms(A, B, Q, R, X)[0]  # differentiable through X
     values = jax.lax.stop_gradient((A, B, Q, R, X))  # the status carries no gradient
-    K_value, Ac, residual, scale = terms(*values)
+    K_value, Ac, residual, scale, floor = terms(*values)
     eps = jnp.finfo(X.dtype).eps
     norm = jnp.linalg.norm
     relative = norm(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
+    # the residual certifies X to sqrt(eps) only where its own rounding level is below that
+    rounding = eps * floor
     if discrete:
         margin = -_log_spectral_radius(Ac)
-        uncertified = False
     else:
-        size = jnp.maximum(jnp.max(jnp.abs(Ac)), jnp.finfo(X.dtype).tiny)
-        margin = -_log_spectral_radius(jax.scipy.linalg.expm(Ac / size))
-        uncertified = norm(_care_rounding(values[3], K_value)) > jnp.sqrt(eps) * scale
+        fastest = jnp.maximum(jnp.max(jnp.abs(Ac)), jnp.finfo(X.dtype).tiny)
+        margin = -_log_spectral_radius(jax.scipy.linalg.expm(Ac / fastest))
+        rounding = rounding + norm(_care_rounding(values[3], K_value))
+    uncertified = rounding > jnp.sqrt(eps) * scale
     finite = jnp.all(jnp.isfinite(X)) & jnp.all(jnp.isfinite(K))
-    converged = converged | (relative <= eps)
     status = (
         status_where(~finite, RiccatiStatus.NONFINITE)
         | status_where(~(margin > MARGIN_FACTOR * jnp.sqrt(eps)), RiccatiStatus.NOT_STABILISING)
