@@ -81,8 +81,9 @@ def test_every_exported_constant_is_documented(name):
     body = ast.parse("\n".join(lines)).body
     undocumented = []
     for node, after in zip(body, [*body[1:], None], strict=True):
-        targets = node.targets if isinstance(node, ast.Assign) else [getattr(node, "target", None)]
-        for target in targets:
+        if not isinstance(node, ast.Assign | ast.AnnAssign):
+            continue
+        for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
             if isinstance(target, ast.Tuple):
                 unpacked = {n.id for n in ast.walk(target) if isinstance(n, ast.Name)}
                 undocumented += [f"{n} (unpacked)" for n in sorted(unpacked & exported)]
