@@ -43,7 +43,7 @@ solution exists, Newton stalls with a closed-loop mode within about sqrt(eps) of
 |Q|; so it estimates X's relative error), is above sqrt(eps); when the residual cannot certify
 that much because its own rounding level is higher (the terms before cancellation: |K|^2 |R|
 in the DARE's closed-loop form, where a nearly singular R meets a small X; and in the CARE
-what rounding R moves it by through R's Cholesky factor, :func:`_care_rounding`, which the
+what rounding R moves it by through R's Cholesky factor, :func:`_rounded_R_effect`, which the
 residual, evaluated through the same factor as the solution, cannot see); or when Newton did
 not converge.
 
@@ -299,8 +299,9 @@ def _care_terms(A, B, Q, R, X):
     |Q| + 2 |A_c| |X| (Frobenius norms): |X| times the size of the derivative
     N -> A_c^T N + N A_c, so that residual / scale estimates X's relative error (an X off by
     eps |X| along a fast closed-loop mode leaves a residual of |A_c| eps |X|). ``floor`` adds
-    2 |A| |X| + |V|^2, the size the other terms can have before cancellation: eps ``floor`` is
-    the residual's rounding level (and :func:`_care_rounding` what rounding R adds)."""
+    2 |A| |X| + |V|^2, the size the other terms can have before cancellation, and what rounding
+    R moves V^T V by (:func:`_rounded_R_effect`): eps ``floor`` is the residual's rounding
+    level."""
     L = cholesky(R)
     V = solve_triangular(L, B.T @ X, lower=True)
     K = solve_triangular(L.T, V, lower=False)
@@ -309,7 +310,20 @@ def _care_terms(A, B, Q, R, X):
     norm = jnp.linalg.norm
     Ac = A - B @ K
     scale = norm(Q) + 2 * norm(Ac) * norm(X)
-    return K, Ac, residual, scale, scale + 2 * norm(A) * norm(X) + norm(V) ** 2
+    floor = scale + 2 * norm(A) * norm(X) + norm(V) ** 2 + norm(_rounded_R_effect(L, K))
+    return K, Ac, residual, scale, floor
+
+
+def _rounded_R_effect(L, K):
+    """|K|^T |L| |L|^T |K| (entrywise absolute values), eps times which bounds to first order how
+    far rounding R moves V^T V = K^T R K in :func:`_care_terms`: V^T V takes R^-1 through R's
+    Cholesky factor L, which is exact for a perturbed R + dR with |dR| of order eps |L| |L|^T
+    entrywise (the factorisation's backward error, Higham 2002, thm 10.3), and dR moves it by
+    K^T dR K. The residual, evaluated through the same factor as the solution, cannot see that
+    change. It is small where R is well conditioned or diagonal (whatever its scales) and large
+    where a nearly singular R is not aligned with the axes."""
+    L, K = jnp.abs(L), jnp.abs(K)
+    return K.T @ (L @ L.T) @ K
 
 
 # --------------------------------------------------------------------------- forward solvers
@@ -449,22 +463,18 @@ def _solve(A, B, Q, R, *, discrete: bool, filter_form: bool) -> RiccatiSolution:
 
 def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
     """X with its gain and status (module docstring: the status check)."""
-    terms = _dare_terms if discrete else _care_terms
-    K = terms(A, B, Q, R, X)[0]  # differentiable through X
-    values = jax.lax.stop_gradient((A, B, Q, R, X))  # the status carries no gradient
-    K_value, Ac, residual, scale, floor = terms(*values)
+    K, Ac, residual, scale, floor = (_dare_terms if discrete else _care_terms)(A, B, Q, R, X)
+    # K is differentiable through X; the status carries no gradient
+    Ac, residual, scale, floor = jax.lax.stop_gradient((Ac, residual, scale, floor))
     eps = jnp.finfo(X.dtype).eps
-    norm = jnp.linalg.norm
-    relative = norm(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
+    relative = jnp.linalg.norm(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
     # the residual certifies X to sqrt(eps) only where its own rounding level is below that
-    rounding = eps * floor
+    uncertified = eps * floor > jnp.sqrt(eps) * scale
     if discrete:
         margin = -_log_spectral_radius(Ac)
     else:
         fastest = jnp.maximum(jnp.max(jnp.abs(Ac)), jnp.finfo(X.dtype).tiny)
         margin = -_log_spectral_radius(jax.scipy.linalg.expm(Ac / fastest))
-        rounding = rounding + norm(_care_rounding(values[3], K_value))
-    uncertified = rounding > jnp.sqrt(eps) * scale
     finite = jnp.all(jnp.isfinite(X)) & jnp.all(jnp.isfinite(K))
     status = (
         status_where(~finite, RiccatiStatus.NONFINITE)
@@ -474,18 +484,6 @@ def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
         )
     )
     return RiccatiSolution(X, K, status, relative, margin)
-
-
-def _care_rounding(R, K):
-    """How far rounding R can move the CARE residual as :func:`_care_terms` evaluates it,
-    eps |K|^T |L| |L|^T |K| (entrywise absolute values): its term V^T V = K^T R K takes R^-1
-    through R's Cholesky factor L, which is exact for a perturbed R + dR with |dR| of order
-    eps |L| |L|^T entrywise (the factorisation's backward error, Higham 2002, thm 10.3), and dR
-    moves V^T V by K^T dR K to first order. It is small where R is well conditioned or diagonal
-    (whatever its scales) and large where a nearly singular R is not aligned with the axes."""
-    L = jnp.abs(cholesky(R))
-    K = jnp.abs(K)
-    return jnp.finfo(R.dtype).eps * K.T @ (L @ L.T) @ K
 
 
 # --------------------------------------------------------------------------- argument checks

@@ -1,17 +1,24 @@
-"""The benchmark scripts (``benchmarks/*.py``, not a package) loaded as modules for their tests."""
+"""Scripts outside the package (``benchmarks/*.py``, ``docs/*.py``; not packages) loaded as
+modules for their tests."""
 
 import importlib.util
 import sys
 from pathlib import Path
 
 BENCHMARKS = Path(__file__).parent.parent / "benchmarks"
+DOCS = Path(__file__).parent.parent / "docs"
 
 
 def load(name: str):
-    """``benchmarks/<name>.py`` as the module ``name``, registered in ``sys.modules`` (equinox
-    Modules defined in it look their module up)."""
-    spec = importlib.util.spec_from_file_location(name, BENCHMARKS / f"{name}.py")
+    """``benchmarks/<name>.py`` as the module ``name`` (:func:`load_file`)."""
+    return load_file(BENCHMARKS / f"{name}.py")
+
+
+def load_file(path: Path):
+    """The script at ``path`` as a module named after it, registered in ``sys.modules``
+    (equinox Modules defined in it look their module up)."""
+    spec = importlib.util.spec_from_file_location(path.stem, path)
     module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
+    sys.modules[path.stem] = module
     spec.loader.exec_module(module)
     return module

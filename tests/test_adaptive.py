@@ -22,6 +22,7 @@ from jaxest.observers import (
     simulate_closed_loop,
 )
 from jaxest.systems.aircraft_linear import aircraft, b747
+from tests import reference
 
 DT = 0.01
 
@@ -341,25 +342,23 @@ class StackedRegressor(eqx.Module):
 
 
 def augmented_kalman_filter(F, B, H, Phi, Q, R, x0, P0, theta0, S0, ys, us):
-    """Plain NumPy Kalman filter on z = (x, theta), theta constant: z_{k+1} = [[F, Phi_k], [0, I]]
-    z_k + (B u_k, 0) + (w_k, 0), y_k = [H, 0] z_k + v_k, NaN entries of y_k not measured. Returns
-    the filtered x and theta."""
+    """The filtered x and theta of the textbook Kalman filter (:func:`tests.reference.
+    kalman_filter`) on z = (x, theta, 1), theta constant and the last entry carrying the input:
+    z_{k+1} = [[F, Phi_k, B u_k], [0, I, 0], [0, 0, 1]] z_k + (w_k, 0, 0), y_k = [H, 0, 0] z_k
+    + v_k."""
     n, p = F.shape[0], Phi.shape[-1]
-    z = np.concatenate([x0, theta0])
-    P = scipy.linalg.block_diag(P0, S0)
-    H_aug = np.hstack([H, np.zeros((H.shape[0], p))])
-    filtered = []
-    for k, (y, u) in enumerate(zip(ys, us, strict=True)):
-        seen = ~np.isnan(y)
-        Hk = H_aug[seen]
-        gain = P @ Hk.T @ np.linalg.inv(Hk @ P @ Hk.T + R[np.ix_(seen, seen)])
-        z, P = z + gain @ (y[seen] - Hk @ z), (np.eye(n + p) - gain @ Hk) @ P
-        filtered.append(z.copy())
-        F_aug = np.block([[F, Phi[k]], [np.zeros((p, n)), np.eye(p)]])
-        z = F_aug @ z + np.concatenate([B @ u, np.zeros(p)])
-        P = F_aug @ P @ F_aug.T + scipy.linalg.block_diag(Q, np.zeros((p, p)))
-    filtered = np.array(filtered)
-    return filtered[:, :n], filtered[:, n:]
+    F_aug = np.stack([
+        np.block([[F, Phi_k, (B @ u)[:, None]],
+                  [np.zeros((p, n)), np.eye(p), np.zeros((p, 1))],
+                  [np.zeros((1, n + p)), np.ones((1, 1))]])
+        for Phi_k, u in zip(Phi, us, strict=True)
+    ])  # fmt: skip
+    H_aug = np.hstack([H, np.zeros((H.shape[0], p + 1))])
+    Q_aug = scipy.linalg.block_diag(Q, np.zeros((p + 1, p + 1)))
+    prior_mean = np.concatenate([x0, theta0, [1.0]])
+    prior_cov = scipy.linalg.block_diag(P0, S0, [[0.0]])
+    means = reference.kalman_filter(F_aug, H_aug, Q_aug, R, prior_mean, prior_cov, ys)[0]
+    return means[:, :n], means[:, n : n + p]
 
 
 def test_discrete_form_without_forgetting_is_the_augmented_kalman_filter():

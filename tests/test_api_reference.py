@@ -5,7 +5,6 @@ function.)"""
 
 import ast
 import importlib
-import importlib.util
 import pkgutil
 import types
 from pathlib import Path
@@ -13,22 +12,16 @@ from pathlib import Path
 import pytest
 
 import jaxest.systems
+from tests import benchmark_scripts
 
+#: docs/api_pages.py, which the site's Griffe extension reads too
+API_PAGES = benchmark_scripts.load_file(benchmark_scripts.DOCS / "api_pages.py")
 #: public names deliberately left out of the reference
 UNDOCUMENTED = {"jaxest": {"filter"}}  # the deprecated alias of run
 
 
-def _api_pages():
-    """docs/api_pages.py (docs/ is not a package), which the site's Griffe extension reads too."""
-    path = Path(__file__).resolve().parents[1] / "docs" / "api_pages.py"
-    spec = importlib.util.spec_from_file_location("api_pages", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def documented_modules() -> list[str]:
-    return sorted(_api_pages().documented_modules())
+    return sorted(API_PAGES.documented_modules())
 
 
 def test_every_api_page_has_a_module():
@@ -64,10 +57,16 @@ def defined_names(module) -> set[str]:
     for node in ast.parse(Path(module.__file__).read_text()).body:
         if isinstance(node, ast.FunctionDef | ast.ClassDef):
             names.add(node.name)
-        elif isinstance(node, ast.Assign | ast.AnnAssign):
-            targets = node.targets if isinstance(node, ast.Assign) else [node.target]
-            names |= {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+        for target in assignment_targets(node):
+            names |= {n.id for n in ast.walk(target) if isinstance(n, ast.Name)}
     return names
+
+
+def assignment_targets(node: ast.stmt) -> list[ast.expr]:
+    """The targets a statement assigns by ``=`` or an annotated assignment; none otherwise."""
+    if isinstance(node, ast.Assign):
+        return node.targets
+    return [node.target] if isinstance(node, ast.AnnAssign) else []
 
 
 @pytest.mark.parametrize("name", documented_modules())
@@ -81,9 +80,7 @@ def test_every_exported_constant_is_documented(name):
     body = ast.parse("\n".join(lines)).body
     undocumented = []
     for node, after in zip(body, [*body[1:], None], strict=True):
-        if not isinstance(node, ast.Assign | ast.AnnAssign):
-            continue
-        for target in node.targets if isinstance(node, ast.Assign) else [node.target]:
+        for target in assignment_targets(node):
             if isinstance(target, ast.Tuple):
                 unpacked = {n.id for n in ast.walk(target) if isinstance(n, ast.Name)}
                 undocumented += [f"{n} (unpacked)" for n in sorted(unpacked & exported)]
@@ -93,6 +90,6 @@ def test_every_exported_constant_is_documented(name):
                     and isinstance(after.value, ast.Constant)
                     and isinstance(after.value.value, str)
                 )
-                if not (string_after or _api_pages().attribute_comment(lines, node.lineno)):
+                if not (string_after or API_PAGES.attribute_comment(lines, node.lineno)):
                     undocumented.append(target.id)
     assert not undocumented, f"{name}: document (or assign alone) {undocumented}"
