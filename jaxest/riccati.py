@@ -21,8 +21,11 @@ allowed (F = 2, H = 1, Q = 0: Sigma = 3, where the Kalman filter converges). Whe
 are concrete these conditions are checked first and a ``ValueError`` names the mode and the
 arguments; under ``jit`` the status carries ``NOT_STABILISING`` instead.
 
-Forward solver, in two stages:
+Forward solver, in three stages:
 
+0. balancing: the states are rescaled by powers of two that balance the Hamiltonian
+   (:func:`_balancing`), so that states in very different units cost no accuracy; the stages
+   below and the status see the balanced problem, and X and K are scaled back exactly;
 1. a start: the structured doubling algorithm (SDA) for the DARE, the matrix sign function of the
    Hamiltonian for the CARE, both on Q + delta I with delta = sqrt(eps) (|Q| + 1 / |B R^-1 B^T|),
    which makes (Q, A) observable so that they converge whenever (A, B) is stabilisable; their
@@ -82,6 +85,8 @@ _MAX_NEWTON = 50
 _COLLAPSE = 64
 #: squarings of the closed loop in :func:`_log_spectral_radius` (powers up to 2^40)
 _SQUARINGS = 40
+#: Osborne sweeps of the balancing at most (:func:`_balancing`)
+_BALANCING_SWEEPS = 32
 #: a closed-loop margin below MARGIN_FACTOR sqrt(eps) is reported as not stabilising
 MARGIN_FACTOR = 10.0
 
@@ -117,7 +122,9 @@ class RiccatiSolution(eqx.Module):
     times the size of its derivative in X (an estimate of X's relative error; module
     docstring); ``margin`` the closed loop's decay margin,
     -log rho(A - B K) ~ 1 - rho (discrete) or -max Re lambda(A - B K) / |A - B K| (continuous),
-    negative when it is unstable.
+    negative when it is unstable. Both are those of the balanced problem (the module
+    docstring's stage 0), whose norms weigh every state alike: X_ij is then known to about
+    ``residual`` |D X D| / (d_i d_j), D the balancing scales.
     """
 
     flags = RiccatiStatus
@@ -326,6 +333,66 @@ def _rounded_R_effect(L, K):
     return K.T @ (L @ L.T) @ K
 
 
+def _balancing(A, B, Q, R):
+    """Powers of two d (n,) that balance the Hamiltonian H = [[A, -G], [-Q, -A^T]]
+    (G = B R^-1 B^T) by the similarity diag(D, D^-1), D = diag(d): the data become
+    D^-1 A D, D^-1 B, D Q D, and the solution D X D (exactly, since d are powers of two).
+
+    Osborne's iteration (Parlett & Reinsch 1969) with the Hamiltonian's structure kept (Benner
+    1997): a sweep scales each state i in turn by the power of two that most reduces the sum of
+    the off-diagonal |entries| of H that d_i moves, a/f + b/f^2 + p f + q f^2 for d_i -> f d_i
+    (a: row i of A and of G off its diagonal, b: G_ii, p: column i of A and row i of Q off its
+    diagonal, q: Q_ii; each of A's, G's and Q's off-diagonal entries appears twice in H). The
+    candidates are f = 1 and the exact minimisers of the linear and of the quadratic terms
+    alone, so the sum never grows; the sweeps stop when none changes d, after
+    ``_BALANCING_SWEEPS``. States given in very different units (a position in km beside a
+    rate in mm/s) are otherwise a Riccati problem that float32 cannot solve (docs/robustness.md);
+    the Newton steps and the status work on the balanced problem."""
+    n = A.shape[-1]
+    dtype = A.dtype
+    V = _input_gramian_factor(B, R)
+    off = ~jnp.eye(n, dtype=bool)
+    abs_A = jnp.where(off, jnp.abs(A), 0)
+    abs_G, abs_Q = jnp.abs(V.T @ V), jnp.abs(Q)
+    abs_G_off, abs_Q_off = jnp.where(off, abs_G, 0), jnp.where(off, abs_Q, 0)
+    limit = jnp.finfo(dtype).nmant  # |log2 d_i| at most: D Q D stays far from overflow
+
+    def scale_state(i, carry):
+        log_d, changed = carry
+        d = _power_of_two(log_d)
+        a = 2 * (abs_A[i] @ d + abs_G_off[i] @ (1 / d)) / d[i]
+        b = abs_G[i, i] / d[i] ** 2
+        p = 2 * (abs_A[:, i] @ (1 / d) + abs_Q_off[i] @ d) * d[i]
+        q = abs_Q[i, i] * d[i] ** 2
+        ratio = jnp.log2(_safe_positive(a + b) / _safe_positive(p + q))
+        candidates = jnp.stack([jnp.zeros((), dtype), jnp.round(ratio / 2), jnp.round(ratio / 4)])
+        candidates = jnp.where((a + b > 0) & (p + q > 0), candidates, 0)
+        candidates = jnp.clip(candidates, -limit - log_d[i], limit - log_d[i])
+        f = _power_of_two(candidates)
+        total = a / f + b / f**2 + p * f + q * f**2
+        step = candidates[jnp.argmin(total)]
+        return log_d.at[i].add(step), changed | (step != 0)
+
+    def sweep(carry):
+        log_d, _, k = carry
+        log_d, changed = jax.lax.fori_loop(0, n, scale_state, (log_d, jnp.zeros((), bool)))
+        return log_d, changed, k + 1
+
+    start = (jnp.zeros(n, dtype), jnp.ones((), bool), 0)
+    keep_going = lambda carry: carry[1] & (carry[2] < _BALANCING_SWEEPS)
+    log_d, _, _ = jax.lax.while_loop(keep_going, sweep, start)
+    return _power_of_two(log_d)
+
+
+def _power_of_two(exponent):
+    """2^exponent for integer-valued ``exponent``, exactly (``jnp.exp2`` is not exact)."""
+    return jnp.ldexp(jnp.ones_like(exponent), exponent.astype(jnp.int32))
+
+
+def _safe_positive(x):
+    return jnp.where(x > 0, x, 1)
+
+
 # --------------------------------------------------------------------------- forward solvers
 def _dare_start(A, B, Q, R):
     """Structured doubling on Q + delta I: A_0 = A, G_0 = B R^-1 B^T, H_0 = Q + delta I; with
@@ -456,9 +523,13 @@ def _solve(A, B, Q, R, *, discrete: bool, filter_form: bool) -> RiccatiSolution:
     jit"). In the filter forms (A, B) are the user's (F, H), transposed here, and so is K."""
     if filter_form:
         A, B = A.T, B.T
+    d = jax.lax.stop_gradient(_balancing(A, B, Q, R))
+    A, B, Q = A * d / d[:, None], B / d[:, None], Q * d * d[:, None]
     X, converged = (_dare if discrete else _care)(A, B, Q, R)
-    solution = _solution(A, B, Q, R, X, converged, discrete=discrete)
-    return eqx.tree_at(lambda s: s.K, solution, solution.K.T) if filter_form else solution
+    balanced = _solution(A, B, Q, R, X, converged, discrete=discrete)
+    X, K = balanced.X / d / d[:, None], balanced.K / d  # back from the balanced coordinates
+    solution = eqx.tree_at(lambda s: (s.X, s.K), balanced, (X, K.T if filter_form else K))
+    return solution
 
 
 def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:

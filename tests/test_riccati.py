@@ -10,6 +10,7 @@ from jax import enable_x64
 
 from jaxest.riccati import (
     RiccatiStatus,
+    _balancing,
     lqr_gain,
     solve_care,
     solve_dare,
@@ -204,7 +205,7 @@ ROTATION = np.array([[np.cos(0.5), -np.sin(0.5)], [np.sin(0.5), np.cos(0.5)]])
         # is evaluated with rounding errors far above what X's accuracy allows
         (solve_dare, solve_filter_dare, sl.solve_discrete_are,
          ([[0.4, 0.3], [0.0, 2.7]], [[-1.0, -0.4], [0.1, -1.3]], 1e-7 * np.eye(2),
-          ROTATION @ np.diag([1.0, 1e-5]) @ ROTATION.T), True),
+          ROTATION @ np.diag([1.0, 1e-6]) @ ROTATION.T), True),
         # a diagonal R with scales 1e6 apart is solved to working accuracy
         (solve_care, solve_filter_care, sl.solve_continuous_are,
          ([[2.4]], [[-1.6, -0.8]], [[0.03]], np.diag([1e-3, 1e3])), False),
@@ -227,6 +228,59 @@ def test_float32_says_inaccurate_where_rounding_R_moves_the_solution(
     # the filter form is the same equation
     filter_status = int(filter_solve(data[0].T, data[1].T, *data[2:]).status)
     assert bool(filter_status & RiccatiStatus.INACCURATE) == flagged
+
+
+@pytest.mark.parametrize("scales", [(1e3, 1.0, 1e-3), (1e3, 1e-3, 1.0)], ids=["a", "b"])
+@pytest.mark.parametrize(
+    "solve,scipy_solve,transition",
+    [
+        (solve_care, sl.solve_continuous_are, lambda A: A),
+        (solve_dare, sl.solve_discrete_are, lambda A: np.eye(3) + 0.5 * A),
+    ],
+    ids=["care", "dare"],
+)
+def test_float32_solves_states_in_very_different_units(solve, scipy_solve, transition, scales):
+    """A well-conditioned problem with its states rescaled (x -> S x, as a position in km beside
+    a rate in mm/s): float32 said NOT_STABILISING or INACCURATE for all four, and one DARE answer
+    was off by 4e7 relative. Balancing the Hamiltonian first (powers of two, exact) solves them
+    to float32's accuracy."""
+    A = np.array([[-0.4, 1.0, 0.0], [-1.0, -0.3, 0.5], [0.2, 0.0, -0.8]])
+    B = np.array([[0.0], [1.0], [0.3]])
+    S, S_inv = np.diag(scales), np.diag(1 / np.asarray(scales))
+    data = [np.float32(v) for v in (S @ transition(A) @ S_inv, S @ B, S_inv @ S_inv, np.eye(1))]
+    with enable_x64(True):
+        reference = scipy_solve(*(np.float64(v) for v in data))
+    solution = solve(*data)
+    assert int(solution.status) == RiccatiStatus.OK
+    error = np.linalg.norm(np.asarray(solution.X, np.float64) - reference)
+    assert error / np.linalg.norm(reference) < 1e-6
+
+
+def test_balancing_scales_are_powers_of_two_that_shrink_the_hamiltonian():
+    """The balancing's scales d are exact powers of two (so scaling back loses nothing; under
+    ``jit(vmap(...))``, where ``jnp.exp2`` is not exact), and diag(D, D^-1) H diag(D^-1, D) has
+    a much smaller off-diagonal 1-norm than H, for the states of the test above in units up to
+    1e6 apart."""
+    A = np.array([[-0.4, 1.0, 0.0], [-1.0, -0.3, 0.5], [0.2, 0.0, -0.8]])
+    B, R = np.array([[0.0], [1.0], [0.3]]), np.eye(1)
+    problems = []
+    for scales in [(1e3, 1.0, 1e-3), (1e3, 1e-3, 1.0), (1e-2, 1.0, 1e2), (0.3, 7.0, 1e-3)]:
+        S, S_inv = np.diag(scales), np.diag(1 / np.asarray(scales))
+        problems.append((S @ A @ S_inv, S @ B, S_inv @ S_inv, R))
+    stacked = [np.stack(arrays) for arrays in zip(*problems, strict=True)]
+
+    def off_diagonal_norm(A, B, Q):
+        H = np.block([[A, -B @ np.linalg.solve(R, B.T)], [-Q, -A.T]])
+        return np.abs(H).sum() - np.abs(np.diag(H)).sum()
+
+    for dtype in (np.float32, np.float64):
+        with enable_x64(dtype == np.float64):
+            scales = jax.jit(jax.vmap(_balancing))(*(jnp.asarray(v, dtype) for v in stacked))
+        assert scales.dtype == dtype
+        for (A, B, Q, _), d in zip(problems, np.asarray(scales, np.float64), strict=True):
+            assert np.all(d == 2.0 ** np.round(np.log2(d)))
+            balanced = off_diagonal_norm(A * d / d[:, None], B / d[:, None], Q * d * d[:, None])
+            assert balanced < 1e-2 * off_diagonal_norm(A, B, Q)
 
 
 @pytest.mark.parametrize("dtype,seed", [(np.float64, 98), (np.float32, 81)])
