@@ -40,14 +40,13 @@ from jaxest.report import markdown_table, write_json
 from jaxest.setmembership.fdi import chi_square_threshold
 from jaxest.smoothers import SmootherResult, rts_smooth
 from jaxest.systems import flight, flight_data, flight_sim as sim
-from jaxest.systems.flight import KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
+from jaxest.systems.flight import DEG, KINEMATIC_STATES, N_KIN, N_STATE, OUTPUTS, PARAMETERS
 from jaxest.tune import FIXED_STEPS_LBFGS, fit
 
 NAME = "svd-ekf"
 DESCRIPTION = "SVD-EKF flight state & sensor-parameter estimation (simulated + ATTAS/HFB-320 data)"
 
 FILTERS = {"ekf": EKF(), "svd_ekf": SVDEKF(), "svd_improved": ImprovedSVDKF()}
-DEG = np.pi / 180.0
 #: prior std of the kinematic states u, v, w (m/s), phi, theta, psi (rad), h (m) from air data and
 #: attitude sensors alone, as on the ATTAS records: with no independent velocity reference, v at
 #: the start is known from the beta vane, whose 0.5 deg bias prior is about 1 m/s at 120 m/s. The

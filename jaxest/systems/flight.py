@@ -61,7 +61,7 @@ from jaxtyping import Array, Float
 from jaxest.models import NonlinearGaussian, at_time
 
 __all__ = [
-    "GRAVITY", "KINEMATIC_STATES", "PARAMETERS", "STATES", "INPUTS", "OUTPUTS", "N_KIN",
+    "GRAVITY", "DEG", "KINEMATIC_STATES", "PARAMETERS", "STATES", "INPUTS", "OUTPUTS", "N_KIN",
     "N_PAR", "N_IN", "N_OUT", "N_STATE", "kinematics", "integrate_interval",
     "FlightTransition", "LeverArms", "FlightObservation", "AT_CG", "SampleNoiseGain",
     "FlightModel", "flight_model", "interval_inputs", "body_velocity", "pin_parameters",
@@ -69,6 +69,8 @@ __all__ = [
 
 #: standard gravity, m/s^2
 GRAVITY = 9.80665
+#: radians per degree (the flight records give angles in degrees)
+DEG = np.pi / 180.0
 
 #: the kinematic states: body velocities u, v, w (m/s), Euler angles phi, theta, psi (rad)
 #: and altitude h (m)

@@ -27,13 +27,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest.systems.flight import DEG
+
 __all__ = [
-    "DEG", "FOOT", "DATA_ENV", "DEFAULT_DATA_DIR", "DOWNLOAD_HINT", "ATTAS_FILES", "HFB320_FILE", "FlightData",
+    "FOOT", "DATA_ENV", "DEFAULT_DATA_DIR", "DOWNLOAD_HINT", "ATTAS_FILES", "HFB320_FILE", "FlightData",
     "find_data_dir", "load_attas", "attas_record", "load_hfb320", "advance_channels",
 ]  # fmt: skip
 
-#: radians per degree (the files give angles in degrees)
-DEG = np.pi / 180.0
 #: metres per foot (the files give altitude in feet)
 FOOT = 0.3048
 

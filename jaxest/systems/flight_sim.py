@@ -28,6 +28,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxest.systems.flight import (
+    DEG,
     GRAVITY,
     N_IN,
     N_KIN,
@@ -37,7 +38,7 @@ from jaxest.systems.flight import (
 )
 
 __all__ = [
-    "MANEUVERS", "DURATION", "FINE_STEPS", "DEG", "TRIM", "INPUT_STD", "OUTPUT_STD",
+    "MANEUVERS", "DURATION", "FINE_STEPS", "TRIM", "INPUT_STD", "OUTPUT_STD",
     "PARAMETER_STD", "LEVER_ARMS", "commands", "true_inputs", "TrueFlight", "true_flight",
     "FlightRecord", "corrupt", "draw_parameters", "initial_guess",
 ]  # fmt: skip
@@ -48,9 +49,6 @@ MANEUVERS = ("elevator", "aileron", "rudder")
 DURATION = 20.0
 #: fine integration steps per sample
 FINE_STEPS = 16
-
-#: radians per degree
-DEG = np.pi / 180.0
 
 #: trim condition: airspeed (m/s), alpha = theta (rad), heading (rad), altitude (m)
 TRIM = {"V": 120.0, "alpha": 3.0 * DEG, "psi": 30.0 * DEG, "h": 3000.0}
