@@ -262,25 +262,25 @@ def test_balancing_scales_are_powers_of_two_that_shrink_the_hamiltonian():
     a much smaller off-diagonal 1-norm than H, for the states of the test above in units up to
     1e6 apart."""
     A = np.array([[-0.4, 1.0, 0.0], [-1.0, -0.3, 0.5], [0.2, 0.0, -0.8]])
-    B, R = np.array([[0.0], [1.0], [0.3]]), np.eye(1)
+    B = np.array([[0.0], [1.0], [0.3]])
     problems = []
     for scales in [(1e3, 1.0, 1e-3), (1e3, 1e-3, 1.0), (1e-2, 1.0, 1e2), (0.3, 7.0, 1e-3)]:
         S, S_inv = np.diag(scales), np.diag(1 / np.asarray(scales))
-        problems.append((S @ A @ S_inv, S @ B, S_inv @ S_inv, R))
+        problems.append((S @ A @ S_inv, S @ B @ B.T @ S, S_inv @ S_inv))  # G = B R^-1 B^T
     stacked = [np.stack(arrays) for arrays in zip(*problems, strict=True)]
 
-    def off_diagonal_norm(A, B, Q):
-        H = np.block([[A, -B @ np.linalg.solve(R, B.T)], [-Q, -A.T]])
+    def off_diagonal_norm(A, G, Q):
+        H = np.block([[A, -G], [-Q, -A.T]])
         return np.abs(H).sum() - np.abs(np.diag(H)).sum()
 
     for dtype in (np.float32, np.float64):
         with enable_x64(dtype == np.float64):
             scales = jax.jit(jax.vmap(_balancing))(*(jnp.asarray(v, dtype) for v in stacked))
         assert scales.dtype == dtype
-        for (A, B, Q, _), d in zip(problems, np.asarray(scales, np.float64), strict=True):
+        for (A, G, Q), d in zip(problems, np.asarray(scales, np.float64), strict=True):
             assert np.all(d == 2.0 ** np.round(np.log2(d)))
-            balanced = off_diagonal_norm(A * d / d[:, None], B / d[:, None], Q * d * d[:, None])
-            assert balanced < 1e-2 * off_diagonal_norm(A, B, Q)
+            balanced = off_diagonal_norm(A * d / d[:, None], G / d / d[:, None], Q * d * d[:, None])
+            assert balanced < 1e-2 * off_diagonal_norm(A, G, Q)
 
 
 @pytest.mark.parametrize("dtype,seed", [(np.float64, 98), (np.float32, 81)])
