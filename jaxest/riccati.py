@@ -349,10 +349,9 @@ def _balancing(A, G, Q):
     the coupled states do not overshoot), and d is rounded to powers of two at the end. One loop
     of n-vector operations, which adds about 0.25 s (a quarter) to compiling a solver; the
     sequential form, one state at a time, balanced no better on the sweep's problems and
-    compiled twice as long. States given in very different
-    units (a position in km beside a rate in mm/s) are otherwise a Riccati problem float32
-    cannot solve (docs/robustness.md); the Newton steps and the status work on the balanced
-    problem."""
+    compiled twice as long. States given in very different units (a position in km beside a
+    rate in mm/s) are otherwise a Riccati problem float32 cannot solve (docs/robustness.md);
+    the Newton steps and the status work on the balanced problem."""
     n = A.shape[-1]
     dtype = A.dtype
     off = ~jnp.eye(n, dtype=bool)
@@ -379,6 +378,7 @@ def _power_of_two(exponent):
 
 
 def _safe_positive(x):
+    """x where positive, else 1: a harmless argument for the logarithm of a ratio not used."""
     return jnp.where(x > 0, x, 1)
 
 
@@ -515,8 +515,7 @@ def _solve(A, B, Q, R, *, discrete: bool, filter_form: bool) -> RiccatiSolution:
     X, converged = (_dare if discrete else _care)(A, B, Q, R, G)
     balanced = _solution(A, B, Q, R, X, converged, discrete=discrete)
     X, K = balanced.X / d / d[:, None], balanced.K / d  # back from the balanced coordinates
-    solution = eqx.tree_at(lambda s: (s.X, s.K), balanced, (X, K.T if filter_form else K))
-    return solution
+    return eqx.tree_at(lambda s: (s.X, s.K), balanced, (X, K.T if filter_form else K))
 
 
 def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
