@@ -115,17 +115,32 @@ def _loss(solve, weights):
     return jax.jit(lambda A, B, Q, R: jnp.sum(weights * solve(A, B, Q, R).X))
 
 
+def states_in_units(scales, discrete):
+    """A well-conditioned 3-state problem (Q = I, R = 1) with its states rescaled by ``scales``
+    (x -> S x, as a position in km beside a rate in mm/s)."""
+    A = np.array([[-0.4, 1.0, 0.0], [-1.0, -0.3, 0.5], [0.2, 0.0, -0.8]])
+    A = np.eye(3) + 0.5 * A if discrete else A
+    S, S_inv = np.diag(scales), np.diag(1 / np.asarray(scales))
+    return S @ A @ S_inv, S @ np.array([[0.0], [1.0], [0.3]]), S_inv @ S_inv, np.eye(1)
+
+
+@pytest.mark.parametrize("units", [False, True], ids=["random", "units-1e6-apart"])
 @pytest.mark.parametrize("solve", [solve_dare, solve_care], ids=["dare", "care"])
-def test_gradient_matches_finite_differences(solve):
+def test_gradient_matches_finite_differences(solve, units):
+    """Through the implicit derivative, and through the balancing, which moves the states of
+    the second problem by up to 2^10 (each argument perturbed relative to its entries)."""
     with enable_x64(True):
-        A, B, Q, R = random_problem(5, 3, 2)
+        if units:
+            A, B, Q, R = states_in_units((1e3, 1.0, 1e-3), solve is solve_dare)
+        else:
+            A, B, Q, R = random_problem(5, 3, 2)
         weights = np.random.default_rng(9).normal(size=(3, 3))
         loss = _loss(solve, weights)
         grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(A, B, Q, R)
         args = [A, B, Q, R]
         rng = np.random.default_rng(1)
         for i in range(4):
-            direction = rng.normal(size=args[i].shape)
+            direction = rng.normal(size=args[i].shape) * (np.abs(args[i]) if units else 1)
             if i >= 2:  # Q and R are symmetric: perturb symmetrically
                 direction = direction + direction.T
             h = 1e-6
@@ -232,22 +247,15 @@ def test_float32_says_inaccurate_where_rounding_R_moves_the_solution(
 
 @pytest.mark.parametrize("scales", [(1e3, 1.0, 1e-3), (1e3, 1e-3, 1.0)], ids=["a", "b"])
 @pytest.mark.parametrize(
-    "solve,scipy_solve,transition",
-    [
-        (solve_care, sl.solve_continuous_are, lambda A: A),
-        (solve_dare, sl.solve_discrete_are, lambda A: np.eye(3) + 0.5 * A),
-    ],
+    "solve,scipy_solve",
+    [(solve_care, sl.solve_continuous_are), (solve_dare, sl.solve_discrete_are)],
     ids=["care", "dare"],
 )
-def test_float32_solves_states_in_very_different_units(solve, scipy_solve, transition, scales):
-    """A well-conditioned problem with its states rescaled (x -> S x, as a position in km beside
-    a rate in mm/s): float32 said NOT_STABILISING or INACCURATE for all four, and one DARE answer
-    was off by 4e7 relative. Balancing the Hamiltonian first (powers of two, exact) solves them
-    to float32's accuracy."""
-    A = np.array([[-0.4, 1.0, 0.0], [-1.0, -0.3, 0.5], [0.2, 0.0, -0.8]])
-    B = np.array([[0.0], [1.0], [0.3]])
-    S, S_inv = np.diag(scales), np.diag(1 / np.asarray(scales))
-    data = [np.float32(v) for v in (S @ transition(A) @ S_inv, S @ B, S_inv @ S_inv, np.eye(1))]
+def test_float32_solves_states_in_very_different_units(solve, scipy_solve, scales):
+    """:func:`states_in_units`: float32 said NOT_STABILISING or INACCURATE for all four, and one
+    DARE answer was off by 4e7 relative. Balancing the Hamiltonian first (powers of two, exact)
+    solves them to float32's accuracy."""
+    data = [np.float32(v) for v in states_in_units(scales, discrete=solve is solve_dare)]
     with enable_x64(True):
         reference = scipy_solve(*(np.float64(v) for v in data))
     solution = solve(*data)
@@ -261,12 +269,10 @@ def test_balancing_scales_are_powers_of_two_that_shrink_the_hamiltonian():
     ``jit(vmap(...))``, where ``jnp.exp2`` is not exact), and diag(D, D^-1) H diag(D^-1, D) has
     a much smaller off-diagonal 1-norm than H, for the states of the test above in units up to
     1e6 apart."""
-    A = np.array([[-0.4, 1.0, 0.0], [-1.0, -0.3, 0.5], [0.2, 0.0, -0.8]])
-    B = np.array([[0.0], [1.0], [0.3]])
     problems = []
     for scales in [(1e3, 1.0, 1e-3), (1e3, 1e-3, 1.0), (1e-2, 1.0, 1e2), (0.3, 7.0, 1e-3)]:
-        S, S_inv = np.diag(scales), np.diag(1 / np.asarray(scales))
-        problems.append((S @ A @ S_inv, S @ B @ B.T @ S, S_inv @ S_inv))  # G = B R^-1 B^T
+        A, B, Q, _ = states_in_units(scales, discrete=False)
+        problems.append((A, B @ B.T, Q))  # G = B R^-1 B^T with R = 1
     stacked = [np.stack(arrays) for arrays in zip(*problems, strict=True)]
 
     def off_diagonal_norm(A, G, Q):
