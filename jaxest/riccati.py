@@ -267,9 +267,10 @@ def _log_spectral_radius(T):
 
 
 # --------------------------------------------------------------------------- shared pieces
-def _input_gramian_factor(B, R):
-    """L^-1 B^T with L the Cholesky factor of R, so B R^-1 B^T = its Gram matrix."""
-    return solve_triangular(cholesky(R), B.T, lower=True)
+def _input_gramian(B, R):
+    """G = B R^-1 B^T as the Gram matrix of L^-1 B^T, L the Cholesky factor of R."""
+    V = solve_triangular(cholesky(R), B.T, lower=True)
+    return V.T @ V
 
 
 def _regularised(Q, G):
@@ -508,8 +509,7 @@ def _solve(A, B, Q, R, *, discrete: bool, filter_form: bool) -> RiccatiSolution:
     jit"). In the filter forms (A, B) are the user's (F, H), transposed here, and so is K."""
     if filter_form:
         A, B = A.T, B.T
-    V = jax.lax.stop_gradient(_input_gramian_factor(B, R))
-    G = V.T @ V  # B R^-1 B^T, for the balancing and the start
+    G = jax.lax.stop_gradient(_input_gramian(B, R))  # for the balancing and the start
     d = jax.lax.stop_gradient(_balancing(A, G, Q))
     A, B, Q, G = A * d / d[:, None], B / d[:, None], Q * d * d[:, None], G / d / d[:, None]
     X, converged = (_dare if discrete else _care)(A, B, Q, R, G)

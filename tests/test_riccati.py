@@ -208,6 +208,13 @@ def test_ill_conditioned_R_against_exact_arithmetic(solve, scipy_solve, exact, s
 ROTATION = np.array([[np.cos(0.5), -np.sin(0.5)], [np.sin(0.5), np.cos(0.5)]])
 
 
+def float32_data_and_reference(scipy_solve, problem):
+    """``problem`` rounded to float32, and scipy's float64 solution of those rounded data."""
+    data = [np.float32(v) for v in problem]
+    with enable_x64(True):
+        return data, scipy_solve(*(np.float64(v) for v in data))
+
+
 @pytest.mark.parametrize(
     "solve,filter_solve,scipy_solve,problem,flagged",
     [
@@ -232,9 +239,8 @@ def test_float32_says_inaccurate_where_rounding_R_moves_the_solution(
 ):
     """Float32 solutions off by more than sqrt(eps) (against float64 on the same float32 data)
     said OK before: their residuals' own rounding hid it. The status now says INACCURATE."""
-    data = [np.float32(v) for v in problem]
+    data, reference = float32_data_and_reference(scipy_solve, problem)
     with enable_x64(True):
-        reference = scipy_solve(*(np.float64(v) for v in data))
         assert int(solve(*(np.float64(v) for v in data)).status) == RiccatiStatus.OK
     solution = solve(*data)
     error = np.abs(np.asarray(solution.X, np.float64) - reference).max() / np.abs(reference).max()
@@ -255,9 +261,8 @@ def test_float32_solves_states_in_very_different_units(solve, scipy_solve, scale
     """:func:`states_in_units`: float32 said NOT_STABILISING or INACCURATE for all four, and one
     DARE answer was off by 4e7 relative. Balancing the Hamiltonian first (powers of two, exact)
     solves them to float32's accuracy."""
-    data = [np.float32(v) for v in states_in_units(scales, discrete=solve is solve_dare)]
-    with enable_x64(True):
-        reference = scipy_solve(*(np.float64(v) for v in data))
+    problem = states_in_units(scales, discrete=solve is solve_dare)
+    data, reference = float32_data_and_reference(scipy_solve, problem)
     solution = solve(*data)
     assert int(solution.status) == RiccatiStatus.OK
     error = np.linalg.norm(np.asarray(solution.X, np.float64) - reference)
