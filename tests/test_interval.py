@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import scipy.special
 
+from jaxest._jaxpr import zero_outputs
 from jaxest.setmembership import interval as iv
 from jaxest.setmembership.interval import Interval, bounding_box, hessian_interval, remainder_bound
 from jaxest.systems import duffing
@@ -242,6 +243,60 @@ def test_remainder_bound_contains_sampled_remainders(name):
     remainders = np.asarray(jax.vmap(lambda x: fn(x) - fn(center) - J @ (x - center))(points))
     assert np.all(np.abs(remainders) <= alpha)
     assert np.all(np.max(np.abs(remainders), axis=0) > 0.02 * alpha)  # bound is not vacuous
+
+
+AFFINE = {
+    "identity": lambda x, u: x,
+    "matrix": lambda x, u: jnp.asarray([[1.0, 2.0], [3.0, -4.0]]) @ x + 1.0,
+    "input_gain": lambda x, u: u * x,
+    "reversed": lambda x, u: x[::-1],
+    "stacked": lambda x, u: jnp.concatenate([x, 2.0 * x[:1] - x[1:]]),
+}
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+@pytest.mark.parametrize("name", sorted(AFFINE))
+def test_affine_function_bound_is_zero_and_compiles_no_interval_arithmetic(name, dtype):
+    """An affine function's remainder is exactly zero; the bound says so when it is traced, so
+    the compiled program (here under jit of vmap, the input a traced argument) has none of the
+    outward-rounded interval arithmetic (``nextafter``), which made up half of a set-membership
+    step with h(x) = x. A quadratic keeps it and a positive bound."""
+    fn, dt = AFFINE[name], jnp.dtype(dtype)
+    centers = jnp.asarray([[0.2, -0.3], [1.5, 0.7]], dt)
+    shapes = jnp.stack([0.01 * jnp.eye(2, dtype=dt), jnp.asarray([[4.0, 1.0], [1.0, 2.0]], dt)])
+    inputs = jnp.asarray([[2.0, 3.0], [-1.0, 0.5]], dt)
+    bound = jax.jit(jax.vmap(lambda c, P, u: remainder_bound(fn, c, P, u)))
+    alpha = bound(centers, shapes, inputs)
+    assert alpha.dtype == dt and alpha.shape == (2, jax.eval_shape(fn, centers[0], inputs[0]).size)
+    np.testing.assert_array_equal(alpha, 0.0)
+    assert "nextafter" not in bound.lower(centers, shapes, inputs).compile().as_text()
+    quadratic = jax.jit(
+        jax.vmap(lambda c, P, u: remainder_bound(lambda x, u: fn(x, u) ** 2, c, P, u))
+    )
+    assert np.all(np.asarray(quadratic(centers, shapes, inputs)) > 0)
+    assert "nextafter" in quadratic.lower(centers, shapes, inputs).compile().as_text()
+
+
+def test_zero_hessian_is_not_taken_from_a_function_the_intervals_cannot_evaluate():
+    """stop_gradient(x)^2 has a zero Hessian by JAX's rules but is not affine: as before the
+    zero-Hessian shortcut, the interval evaluation names the primitive it has no rule for; a
+    kink (abs, whose branches' Hessians are zero) keeps its first-order bound."""
+    with pytest.raises(NotImplementedError, match="stop_gradient"):
+        remainder_bound(lambda x: jax.lax.stop_gradient(x) ** 2, jnp.ones(2), 0.1 * jnp.eye(2))
+    across_kink = remainder_bound(jnp.abs, jnp.zeros(2), 0.1 * jnp.eye(2))
+    assert np.all(np.asarray(across_kink) > 0)
+
+
+def test_zero_outputs_sees_zeros_built_from_zero_literals_only():
+    """``zero_outputs`` (the test of the shortcut above) is true for the zeros JAX writes as a
+    derivative, false for a constant that is not zero and for anything computed from x."""
+    x = jnp.zeros(2)
+    hessian = lambda fn: jax.make_jaxpr(jax.hessian(fn))(x).jaxpr
+    assert zero_outputs(hessian(lambda x: 3.0 * x[::-1] + 1.0))
+    assert not zero_outputs(hessian(lambda x: x**2))  # 2 on the diagonal
+    assert not zero_outputs(jax.make_jaxpr(lambda x: 0.0 * x)(x).jaxpr)  # NaN where x is inf
+    select = jax.make_jaxpr(lambda x: jnp.where(x > 0, 0.0, jnp.ones(2)))(x).jaxpr
+    assert not zero_outputs(select)
 
 
 def test_duffing_closed_form_agrees_with_automatic_bound():

@@ -31,7 +31,7 @@ from jax import lax
 from jax.extend import core as jex
 from jaxtyping import Array, Float
 
-from jaxest._jaxpr import inner_jaxprs
+from jaxest._jaxpr import inner_jaxprs, zero_outputs
 
 #: outward widening (in ulps) of library functions that are not correctly rounded
 _LIBM_ULPS = 4
@@ -550,10 +550,15 @@ def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None
     return (of("kink"), of("jump")) if found else None
 
 
+def _derivative_jaxpr(derivative: Callable, fn: Callable, box: Interval, args):
+    """The closed jaxpr of ``derivative(fn)`` for arguments shaped as ``box`` and ``args``."""
+    example, arg_shapes = _shapes(box, args)
+    return jax.make_jaxpr(derivative(fn))(example, *arg_shapes)
+
+
 def _derivative_enclosures(derivative: Callable, fn: Callable, boxes, *args) -> list[Interval]:
     """Enclosures of ``derivative(fn)`` over each of ``boxes`` (one shape), traced once."""
-    example, arg_shapes = _shapes(boxes[0], args)
-    closed = jax.make_jaxpr(derivative(fn))(example, *arg_shapes)
+    closed = _derivative_jaxpr(derivative, fn, boxes[0], args)
     return [lift(eval_jaxpr(closed.jaxpr, closed.consts, box, *args)[0]) for box in boxes]
 
 
@@ -594,17 +599,25 @@ def remainder_bound(
     Jacobians over the box, so alpha_i = sum_j |J_ij(box) - J_ij(c)| r_j (first order in r).
     Where its value may jump (sign, ``where`` on a condition that changes over the box) no
     bound holds: NaN, which the set-membership filter flags.
+
+    An ``fn`` without non-smooth operations whose Hessian JAX writes as zeros
+    (:func:`jaxest._jaxpr.zero_outputs`: an affine ``fn`` such as ``H @ x + b``) is affine: its
+    bound is exactly zero, and nothing else is computed (the enclosure below is still traced,
+    so a primitive without an interval rule raises as it would otherwise, and then discarded).
     """
     box = bounding_box(center, shape)
+    hessian = _derivative_jaxpr(jax.hessian, fn, box, args)
+    hess = lift(eval_jaxpr(hessian.jaxpr, hessian.consts, box, *args)[0])  # (m, n, n)
+    found = kinks_over(fn, box, *args)
+    if found is None and zero_outputs(hessian.jaxpr):
+        return jnp.zeros(hess.shape[:-2], center.dtype)
     r = _up(jnp.sqrt(jnp.diagonal(shape)))
-    hess = hessian_interval(fn, box, *args)  # (m, n, n)
     rr = _up(r[:, None] * r[None, :])
     diagonal = jnp.eye(r.shape[0], dtype=bool)
     products = Interval(jnp.where(diagonal, 0.0, -rr), rr)
     quadratic = reduce_sum(mul(hess, Interval(products.lo[None], products.hi[None])), (1, 2))
     half = 0.5 * quadratic.mag()  # exact but for subnormals, which _up covers
     bound = jnp.where(half == 0, 0.0, _up(half))  # NaN (a failed enclosure) stays NaN
-    found = kinks_over(fn, box, *args)
     if found is None:
         return bound
     kink, jump = found
