@@ -4,9 +4,11 @@ and isolation on the Duffing system (Chai & Sun 2007, §4, figs 1-3, tables 2-3;
 Protocol: paper steps k = 1..100; sensor 1 carries a bias 0.03 + 0.01 L from k = 50 on, for
 L = 0, 1, 2, plus a fault-free scenario; noise uniform in its box; the same noise draws (one key per
 run) serve every scenario, so the runs coincide before the fault. Every run, scenario and filter
-(detection filter, the single-sensor filters of both isolation banks, the EKF baseline) runs at
-once under one ``vmap``. The missed rates move with the seed, so the study also repeats the Monte
-Carlo for ``SEEDS`` consecutive seeds and reports their spread.
+(detection filter, the single-sensor filters of both isolation banks, the EKF baseline) runs in
+one program under ``vmap``, each distinct set-membership run once (:func:`run_bank_scenarios`):
+the steps before the fault once per filter, and the sensor-2 filter, which never sees the
+fault, once over all four scenarios. The missed rates move with the seed, so the study also
+repeats the Monte Carlo for ``SEEDS`` consecutive seeds and reports their spread.
 
 EKF + chi-square baseline: Q, R are the variances of the uniform noise (w^2/3, the primary rule)
 or (w/3)^2 (the box read as +-3 sigma); the test alarms when the normalised innovation squared
@@ -14,7 +16,8 @@ exceeds its chi-square(2) quantile at significance ``SIGNIFICANCE`` per step.
 
 The bank helpers work for any number m of sensors and any system: :func:`filter_bank` (the
 distinct filters of detection and both isolation methods), :func:`run_bank`,
-:func:`fdi_scores`, and for a Monte Carlo of one fault :func:`bank_monte_carlo_function` and
+:func:`run_bank_scenarios` (:func:`scenario_plan`), :func:`fdi_scores`, and for a Monte Carlo
+of one fault :func:`bank_monte_carlo_function` and
 :func:`bank_rates` (the three-sensor example of :mod:`jaxest.systems.pendulum`); the paper's
 study uses ``filter_bank(2)``.
 """
@@ -31,7 +34,7 @@ import numpy as np
 
 from jaxest import xla_flags
 from jaxest._priors import Gaussian
-from jaxest._run import run as run_estimator
+from jaxest._run import SaveAt, run as run_estimator
 from jaxest.filters import EKF
 from jaxest.filters.common import covariance_predict
 from jaxest.models import NonlinearGaussian
@@ -140,21 +143,105 @@ def fdi_scores(inconsistent, bank: FilterBank, faulty: int, fault_start: int, re
     }
 
 
+class ScenarioPlan(NamedTuple):
+    """The distinct runs of a bank's filters over scenarios (:func:`scenario_plan`): every
+    filter's measurements agree in all scenarios before step ``split``; from it on, ``pairs``
+    (P, 2) lists the distinct runs as (filter, scenario), and ``index[s, f]`` is the pair whose
+    run is filter f's in scenario s."""
+
+    split: int
+    pairs: np.ndarray
+    index: np.ndarray
+
+
+def scenario_plan(biases, masks: np.ndarray) -> ScenarioPlan:
+    """The runs a bank (``masks`` (F, m)) needs over scenarios that differ only by the sensor
+    biases (S, T, m) added to the same noisy measurements (one key per run serves every
+    scenario). Filter f sees the same measurements in two scenarios wherever their biases on
+    the sensors it sees agree: in all of them before the first step where any bias on a seen
+    sensor differs, and throughout where none ever does (the sensor-2 filter when only sensor 1
+    is faulty). ``biases`` must be concrete: the plan is fixed when the program is traced."""
+    biases, masks = np.asarray(biases), np.asarray(masks, bool)
+    seen = np.where(masks[None, :, None, :], biases[:, None], 0.0)  # (S, F, T, m)
+    differs = np.any(seen != seen[:1], axis=(0, 1, 3))  # (T,)
+    split = int(np.argmax(differs)) if differs.any() else biases.shape[1]
+    pairs, index = [], np.zeros(seen.shape[:2], int)
+    for f in range(len(masks)):
+        for s in range(len(biases)):
+            same = [
+                p for p, (g, r) in enumerate(pairs) if g == f and (seen[r, f] == seen[s, f]).all()
+            ]
+            if not same:
+                pairs.append((f, s))
+            index[s, f] = same[0] if same else len(pairs) - 1
+    return ScenarioPlan(split, np.asarray(pairs, int).reshape(-1, 2), index)
+
+
+#: what the flags of :func:`run_bank_scenarios` need of each SMF step
+_FLAG_FIELDS = SaveAt(fields=("center", "shape", "status"))
+
+
+def _flags(result: SMFResult, states) -> tuple:
+    """(inconsistent, contains, unbounded), each (T,), of one SMF run over the truth ``states``."""
+    return result.inconsistent, result.contains(states), result.unbounded
+
+
+def run_scenarios(run_one, masks: np.ndarray, states, ys, biases):
+    """Every filter (rows of ``masks`` (F, m): the sensors each sees) over every scenario's truth
+    ``states`` (S, T, n) and measurements ``ys`` (S, T, m), the scenarios differing only by
+    ``biases`` (S, T, m, concrete): outputs (S, F, T, ...), as if every pair had run, but each
+    distinct run computed once (:func:`scenario_plan`): the steps all scenarios share once per
+    filter, then each distinct rest, resumed where its filter left off.
+
+    ``run_one(mask, ys, states, start, k0) -> (outputs, final_state)`` runs one filter over
+    ``ys`` (from its prior where ``start`` is None, else resuming ``start`` at step ``k0``), its
+    outputs a pytree of arrays with time first."""
+    plan = scenario_plan(biases, masks)
+    split, (filters, scenarios) = plan.split, plan.pairs.T
+    masks = jnp.asarray(masks)
+    parts, start = [], None
+    if split > 0:  # every filter once over the shared steps, as in scenario 0
+        shared, final = jax.vmap(run_one, (0, None, None, None, None))(
+            masks, ys[0, :split], states[0, :split], None, 0
+        )
+        parts.append(jax.tree.map(lambda a: jnp.broadcast_to(a, (len(ys), *a.shape)), shared))
+        start = jax.tree.map(lambda a: a[filters], final)
+    if split < ys.shape[1]:  # each distinct rest once
+        rest, _ = jax.vmap(run_one, (0, 0, 0, 0, None))(
+            masks[filters], ys[scenarios, split:], states[scenarios, split:], start, split
+        )
+        parts.append(jax.tree.map(lambda a: a[plan.index], rest))
+    return jax.tree.map(lambda *segments: jnp.concatenate(segments, axis=2), *parts)
+
+
+def run_bank_scenarios(model, prior, states, ys, biases, masks: np.ndarray) -> tuple:
+    """``(inconsistent, contains, unbounded)``, each (S, F, T): the SMF of every row of ``masks``
+    over every scenario (:func:`run_scenarios`), the same as :func:`run_bank` and
+    :func:`bank_contains` per scenario."""
+    smf = SetMembershipFilter()
+
+    def run_one(mask, ys, states, start, k0):
+        subset = fdi.sensor_subset(ys, mask)
+        result = run_estimator(
+            smf, model, subset, prior=prior, state=start, k0=k0, save=_FLAG_FIELDS
+        )
+        return _flags(result, states), result.final_state
+
+    return run_scenarios(run_one, masks, states, ys, biases)
+
+
 def bank_monte_carlo_function(model, prior, simulate, fault_bias, bank: FilterBank):
     """A jitted ``keys -> (inconsistent, contains)``, each (runs, 2, F, T): every filter of
-    ``bank`` over a fault-free run (scenario 0) and the same run with ``fault_bias`` (T, m) added
-    to the measurements (scenario 1), the same noise draws in both; ``simulate(key, bias) ->
-    (states, ys)``, ``prior`` the set at the first measurement. Runs are vmapped
-    (:func:`batched_over_runs`)."""
-    biases = jnp.stack([jnp.zeros_like(fault_bias), fault_bias])
+    ``bank`` over a fault-free run (scenario 0) and the same run with ``fault_bias`` (T, m,
+    concrete) added to the measurements (scenario 1), the same noise draws in both;
+    ``simulate(key, bias) -> (states, ys)``, ``prior`` the set at the first measurement. Runs
+    are vmapped (:func:`batched_over_runs`); each distinct filter run is computed once
+    (:func:`run_bank_scenarios`)."""
+    biases = np.stack([np.zeros_like(fault_bias), fault_bias])
 
     def one_run(key):
-        def scenario(bias):
-            states, ys = simulate(key, bias)
-            result = run_bank(model, prior, ys, bank.masks)
-            return result.inconsistent, bank_contains(result, states)
-
-        return jax.vmap(scenario)(biases)
+        states, ys = jax.vmap(simulate, (None, 0))(key, jnp.asarray(biases))
+        return run_bank_scenarios(model, prior, states, ys, biases, bank.masks)[:2]
 
     return batched_over_runs(one_run)
 
@@ -243,17 +330,17 @@ def _one_run(key, biases, closed_form_bound=False):
     threshold = fdi.chi_square_threshold(2, SIGNIFICANCE)
     ekfs = [(ekf_model(rule), ekf_prior(ekf_model(rule))) for rule in VARIANCE_RULES]
 
-    def scenario(bias):
-        states, ys = duffing.simulate(key, bias)
-        bank = run_bank(model, prior, ys, BANK.masks)
-        flags = (bank.inconsistent, bank_contains(bank, states), bank.unbounded)
+    states, ys = jax.vmap(duffing.simulate, (None, 0))(key, jnp.asarray(biases))
+    flags = run_bank_scenarios(model, prior, states, ys, biases, BANK.masks)
+
+    def ekf_alarms(ys):
         alarms = []
         for ekf, ekf_init in ekfs:
             post = run_estimator(EKF(), ekf, ys, prior=ekf_init)
             alarms.append(fdi.chi_square_alarms(post.innovation, post.innovation_cov, threshold))
-        return (*flags, jnp.stack(alarms))
+        return jnp.stack(alarms)
 
-    return jax.vmap(scenario)(biases)
+    return (*flags, jax.vmap(ekf_alarms)(ys))
 
 
 def batched_over_runs(one_run):
