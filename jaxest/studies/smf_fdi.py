@@ -236,7 +236,8 @@ def bank_monte_carlo_function(model, prior, simulate, fault_bias, bank: FilterBa
     concrete) added to the measurements (scenario 1), the same noise draws in both;
     ``simulate(key, bias) -> (states, ys)``, ``prior`` the set at the first measurement. Runs
     are vmapped (:func:`batched_over_runs`); each distinct filter run is computed once
-    (:func:`run_bank_scenarios`)."""
+    (:func:`run_bank_scenarios`), which relies on ``simulate`` adding ``bias`` to the
+    measurements alone: the same states, and the same measurements wherever the bias is 0."""
     biases = np.stack([np.zeros_like(fault_bias), fault_bias])
 
     def one_run(key):
