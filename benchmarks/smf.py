@@ -1,11 +1,13 @@
 """Speed of the set-membership study: jaxest (vmap over runs) against a plain NumPy loop.
 
-    python benchmarks/smf.py [--json out.json] [--runs 200] [--numpy-runs 20]
+    python benchmarks/smf.py [--json out.json] [--runs 200] [--numpy-runs 20] [--devices N]
 
-Prints ``{"study_seconds", "compile_seconds", "jaxest_runs_per_second", "numpy_runs_per_second",
-"ratio"}``: the whole smf-fdi Monte Carlo (all L, all filters, the EKF baseline) after compilation,
-and the runs per second of one SMF over the Duffing data, jaxest under ``vmap`` against the
-straightforward NumPy loop below (same filter, same process). The NumPy filter is written from
+Prints ``{"study_seconds", "study_seconds_one_device", "devices", "compile_seconds",
+"jaxest_runs_per_second", "numpy_runs_per_second", "ratio"}``: the whole smf-fdi Monte Carlo
+(all L, all filters, the EKF baseline) after compilation, its runs sharded over ``devices`` (on
+a CPU one per core unless ``--devices`` says otherwise, as ``reproduce`` runs the study) and on
+one device, and the runs per second of one SMF over the Duffing data on one device, jaxest
+under ``vmap`` against the straightforward NumPy loop below (same filter, same process). The NumPy filter is written from
 docs/papers/smf.md with the printed (unnormalised) eq 36, and the tests use it as an independent reference.
 """
 
@@ -99,7 +101,15 @@ def main(argv=None):
     parser.add_argument("--json", type=Path, default=None, help="also write the result here")
     parser.add_argument("--runs", type=int, default=200)
     parser.add_argument("--numpy-runs", type=int, default=20)
+    parser.add_argument("--devices", type=int, default=None, help="CPU devices (default: cores)")
     args = parser.parse_args(argv)
+
+    from jaxest import xla_flags
+
+    cores = xla_flags.one_device_per_core()
+    if args.devices is not None:
+        cores = (f"--xla_force_host_platform_device_count={args.devices}",)
+    xla_flags.add(cores)  # before JAX starts its CPU backend
 
     import jax
 
@@ -111,10 +121,14 @@ def main(argv=None):
 
     keys = jax.random.split(jax.random.key(0), args.runs)
     study = smf_fdi.monte_carlo_function(closed_form_bound=True)  # as the study
+    sharded = smf_fdi.shard_runs(keys)
     start = time.perf_counter()
-    jax.block_until_ready(study(keys))
+    jax.block_until_ready(study(sharded))
     compile_seconds = time.perf_counter() - start
-    study_seconds = _best_of(lambda: jax.block_until_ready(study(keys)))
+    study_seconds = _best_of(lambda: jax.block_until_ready(study(sharded)))
+    one_device = jax.device_put(keys, jax.devices()[0])
+    jax.block_until_ready(study(one_device))
+    study_seconds_one_device = _best_of(lambda: jax.block_until_ready(study(one_device)))
 
     one_filter = smf_fdi.single_filter_function(closed_form_bound=True)
     jax.block_until_ready(one_filter(keys))
@@ -137,6 +151,8 @@ def main(argv=None):
     r, r0 = args.runs / jax_seconds, args.numpy_runs / numpy_seconds
     result = {
         "study_seconds": study_seconds,
+        "study_seconds_one_device": study_seconds_one_device,
+        "devices": len(sharded.sharding.device_set),
         "compile_seconds": compile_seconds,
         "jaxest_runs_per_second": r,
         "numpy_runs_per_second": r0,

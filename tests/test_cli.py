@@ -218,5 +218,7 @@ def test_the_timed_studies_run_alone(tmp_path, monkeypatch):
     flags = {name: entry["xla_flags"].split() for name, entry in index.items()}
     user = ["--xla_backend_optimization_level=2"]
     assert flags["wiener"] == flags["filters"] == [*user, *xla_flags.SERIAL_CODEGEN]
-    assert flags["smf-fdi"] == flags["parallel"] == user
+    assert flags["parallel"] == user
+    # and the study that shards its runs over the devices gets one per core
+    assert flags["smf-fdi"] == [*user, *xla_flags.one_device_per_core()]
     assert os.environ["XLA_FLAGS"].split() == user  # this process's own are left as they were
