@@ -7,8 +7,9 @@ Prints ``{"study_seconds", "study_seconds_one_device", "devices", "compile_secon
 (all L, all filters, the EKF baseline) after compilation, its runs sharded over ``devices`` (on
 a CPU one per core unless ``--devices`` says otherwise, as ``reproduce`` runs the study) and on
 one device, and the runs per second of one SMF over the Duffing data on one device, jaxest
-under ``vmap`` against the straightforward NumPy loop below (same filter, same process). The NumPy filter is written from
-docs/papers/smf.md with the printed (unnormalised) eq 36, and the tests use it as an independent reference.
+under ``vmap`` against the straightforward NumPy loop below (same filter, same process). The
+NumPy filter is written from docs/papers/smf.md with the printed (unnormalised) eq 36, and the
+tests use it as an independent reference.
 """
 
 from __future__ import annotations
@@ -106,10 +107,7 @@ def main(argv=None):
 
     from jaxest import xla_flags
 
-    cores = xla_flags.one_device_per_core()
-    if args.devices is not None:
-        cores = (f"--xla_force_host_platform_device_count={args.devices}",)
-    xla_flags.add(cores)  # before JAX starts its CPU backend
+    xla_flags.add(xla_flags.cpu_devices(args.devices))  # before JAX starts its CPU backend
 
     import jax
 

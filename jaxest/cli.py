@@ -197,12 +197,12 @@ def _worker_environment(name: str) -> dict[str, str]:
     thread pool only adds work: the six untimed studies with ``--jobs 2`` took 37-58 s less CPU
     and 15-21 s less wall time (4-6 %, 3-4 %), with the same results (docs/performance.md).
     A timed study whose module sets ``RUNS_ACROSS_CORES`` runs alone with one CPU device per
-    core (:func:`jaxest.xla_flags.one_device_per_core`), over which it shards its runs."""
+    core (:func:`jaxest.xla_flags.cpu_devices`), over which it shards its runs."""
     environment = dict(os.environ)
     if not _timed(name):
         xla_flags.add(xla_flags.SERIAL_CODEGEN, environment)
     elif getattr(studies.load(name), "RUNS_ACROSS_CORES", False):
-        xla_flags.add(xla_flags.one_device_per_core(), environment)
+        xla_flags.add(xla_flags.cpu_devices(), environment)
     return environment
 
 

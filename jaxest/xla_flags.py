@@ -18,9 +18,9 @@ small fusions and its gradient twice as many. Three flags of the pinned jaxlib (
 
 docs/performance.md ("XLA flags that compile faster") has the measurements.
 
-:func:`one_device_per_core` (``--xla_force_host_platform_device_count``) is not about
-compiling: it gives the process one CPU device per core, over which a study can shard its runs
-(``reproduce`` gives it to the smf-fdi study, which runs alone).
+:func:`cpu_devices` (``--xla_force_host_platform_device_count``) is not about compiling: it
+gives the process one CPU device per core, over which a study can shard its runs (``reproduce``
+gives it to the smf-fdi study, which runs alone).
 
 Options for one program rather than the process go to ``jax.jit(..., compiler_options=...)``
 through :func:`compile_options`: :data:`NO_YNN_FUSION`, which :func:`jaxest.vmap_minor` uses.
@@ -42,7 +42,7 @@ import jaxlib
 __all__ = [
     "MEASURED_JAXLIB", "FASTER_COMPILATION", "UNOPTIMISED_MACHINE_CODE", "SERIAL_CODEGEN",
     "OPTIMISED_MACHINE_CODE", "add", "current", "NO_YNN_FUSION", "compile_options",
-    "one_device_per_core",
+    "cpu_devices",
 ]  # fmt: skip
 
 #: the jaxlib release series whose XLA knows these flags and on which they were measured
@@ -80,12 +80,12 @@ def add(
     return added
 
 
-def one_device_per_core() -> tuple[str, ...]:
-    """XLA's CPU client with one device per core of this machine (``jax.devices()`` lists them):
-    a program whose batch is sharded over them runs each shard on a core of its own. Without it
-    the CPU is one device, and a batched program (a Monte Carlo's ``vmap``) mostly runs on one
-    core: XLA splits only large operations over its thread pool."""
-    return (f"--xla_force_host_platform_device_count={os.cpu_count() or 1}",)
+def cpu_devices(count: int | None = None) -> tuple[str, ...]:
+    """XLA's CPU client with ``count`` devices (default: one per core of this machine;
+    ``jax.devices()`` lists them): a program whose batch is sharded over them runs each shard on
+    a core of its own. Without it the CPU is one device, and a batched program (a Monte Carlo's
+    ``vmap``) mostly runs on one core: XLA splits only large operations over its thread pool."""
+    return (f"--xla_force_host_platform_device_count={count or os.cpu_count() or 1}",)
 
 
 def current() -> str:

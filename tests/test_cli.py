@@ -220,5 +220,5 @@ def test_the_timed_studies_run_alone(tmp_path, monkeypatch):
     assert flags["wiener"] == flags["filters"] == [*user, *xla_flags.SERIAL_CODEGEN]
     assert flags["parallel"] == user
     # and the study that shards its runs over the devices gets one per core
-    assert flags["smf-fdi"] == [*user, *xla_flags.one_device_per_core()]
+    assert flags["smf-fdi"] == [*user, *xla_flags.cpu_devices()]
     assert os.environ["XLA_FLAGS"].split() == user  # this process's own are left as they were

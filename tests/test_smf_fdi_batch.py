@@ -18,7 +18,6 @@ from tests.lowering import custom_call_targets, fusion_kinds
 
 REPEATS = 20
 TIME_LIMIT_S = 600
-_TWO_DEVICES = "--xla_force_host_platform_device_count=2"
 
 
 @pytest.mark.parametrize("closed_form_bound", [True, False])
@@ -69,6 +68,6 @@ def test_one_vmap_over_200_runs_repeats_without_hanging():
     done = subprocess.run(
         [sys.executable, "-c", script],
         capture_output=True, text=True, timeout=TIME_LIMIT_S,
-        env={**os.environ, "XLA_FLAGS": " ".join([*optimised, _TWO_DEVICES])},
+        env={**os.environ, "XLA_FLAGS": " ".join([*optimised, *xla_flags.cpu_devices(2)])},
     )  # fmt: skip
     assert done.returncode == 0 and done.stdout.strip().endswith("ok"), done.stderr[-2000:]

@@ -369,8 +369,8 @@ def batched_over_runs(one_run):
 
 def shard_runs(keys):
     """``keys`` placed one block of runs per device, where the process has several devices
-    (:func:`jaxest.montecarlo.default_mesh`; on a CPU, :func:`jaxest.xla_flags.one_device_per_core`)
-    and the runs divide evenly among them; as given otherwise. A program of
+    (:func:`jaxest.montecarlo.default_mesh`; on a CPU, :func:`jaxest.xla_flags.cpu_devices`) and
+    the runs divide evenly among them; as given otherwise. A program of
     :func:`batched_over_runs` then runs each block on its own device. The Monte Carlo's flags
     are the same bit for bit as on one device (``tests/test_smf_fdi_batch.py``); floating-point
     values XLA computes for the smaller batch may differ in the last bit (the quick study's
