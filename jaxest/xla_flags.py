@@ -19,8 +19,8 @@ small fusions and its gradient twice as many. Three flags of the pinned jaxlib (
 docs/performance.md ("XLA flags that compile faster") has the measurements.
 
 :func:`cpu_devices` (``--xla_force_host_platform_device_count``) is not about compiling: it
-gives the process one CPU device per core, over which a study can shard its runs (``reproduce``
-gives it to the smf-fdi study, which runs alone).
+gives the process one CPU device per core, over which a study can shard its runs
+(``reproduce --jobs N`` gives it to the smf-fdi study's process, which runs alone).
 
 Options for one program rather than the process go to ``jax.jit(..., compiler_options=...)``
 through :func:`compile_options`: :data:`NO_YNN_FUSION`, which :func:`jaxest.vmap_minor` uses.

@@ -53,8 +53,8 @@ DESCRIPTION = (
 NAME = "smf-fdi"
 #: its tables report wall times (the 200-run study after compiling)
 TIMED = True
-#: its Monte Carlo shards the runs over the devices (:func:`shard_runs`): ``reproduce`` runs it
-#: with one CPU device per core
+#: its Monte Carlo shards the runs over the devices (:func:`shard_runs`): ``reproduce --jobs N``
+#: runs it in a process of its own with one CPU device per core
 RUNS_ACROSS_CORES = True
 LEVELS = (0, 1, 2)
 DEFAULT_RUNS = 200
