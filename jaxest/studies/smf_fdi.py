@@ -182,28 +182,25 @@ def scenario_plan(biases, masks: np.ndarray) -> ScenarioPlan:
     return ScenarioPlan(split, np.asarray(pairs, int).reshape(-1, 2), index)
 
 
-#: what the flags of :func:`run_bank_scenarios` need of each SMF step
-_FLAG_FIELDS = SaveAt(fields=("center", "shape", "status"))
-
-
-def _flags(result: SMFResult, states) -> tuple:
-    """(inconsistent, contains, unbounded), each (T,), of one SMF run over the truth ``states``."""
-    return result.inconsistent, result.contains(states), result.unbounded
-
-
-def run_scenarios(run_one, masks: np.ndarray, states, ys, biases):
-    """Every filter (rows of ``masks`` (F, m): the sensors each sees) over every scenario's truth
-    ``states`` (S, T, n) and measurements ``ys`` (S, T, m), the scenarios differing only by
-    ``biases`` (S, T, m, concrete): outputs (S, F, T, ...), as if every pair had run, but each
-    distinct run computed once (:func:`scenario_plan`): the steps all scenarios share once per
-    filter, then each distinct rest, resumed where its filter left off.
-
-    ``run_one(mask, ys, states, start, k0) -> (outputs, final_state)`` runs one filter over
-    ``ys`` (from its prior where ``start`` is None, else resuming ``start`` at step ``k0``), its
-    outputs a pytree of arrays with time first."""
+def run_bank_scenarios(model, prior, states, ys, biases, masks: np.ndarray) -> tuple:
+    """``(inconsistent, contains, unbounded)``, each (S, F, T): the SMF of every row of ``masks``
+    (F, m: the sensors each filter sees) over every scenario's truth ``states`` (S, T, n) and
+    measurements ``ys`` (S, T, m), the scenarios differing only by ``biases`` (S, T, m,
+    concrete). The same as :func:`run_bank` and :func:`bank_contains` per scenario, but each
+    distinct run is computed once (:func:`scenario_plan`): the steps all scenarios share once
+    per filter, then each distinct rest, resumed where its filter left off."""
     plan = scenario_plan(biases, masks)
     split, (filters, scenarios) = plan.split, plan.pairs.T
     masks = jnp.asarray(masks)
+    smf = SetMembershipFilter()
+    kept = SaveAt(fields=("center", "shape", "status"))  # what the flags need of each step
+
+    def run_one(mask, ys, states, start, k0):
+        subset = fdi.sensor_subset(ys, mask)
+        result = run_estimator(smf, model, subset, prior=prior, state=start, k0=k0, save=kept)
+        flags = result.inconsistent, result.contains(states), result.unbounded
+        return flags, result.final_state
+
     parts, start = [], None
     if split > 0:  # every filter once over the shared steps, as in scenario 0
         shared, final = jax.vmap(run_one, (0, None, None, None, None))(
@@ -216,23 +213,7 @@ def run_scenarios(run_one, masks: np.ndarray, states, ys, biases):
             masks[filters], ys[scenarios, split:], states[scenarios, split:], start, split
         )
         parts.append(jax.tree.map(lambda a: a[plan.index], rest))
-    return jax.tree.map(lambda *segments: jnp.concatenate(segments, axis=2), *parts)
-
-
-def run_bank_scenarios(model, prior, states, ys, biases, masks: np.ndarray) -> tuple:
-    """``(inconsistent, contains, unbounded)``, each (S, F, T): the SMF of every row of ``masks``
-    over every scenario (:func:`run_scenarios`), the same as :func:`run_bank` and
-    :func:`bank_contains` per scenario."""
-    smf = SetMembershipFilter()
-
-    def run_one(mask, ys, states, start, k0):
-        subset = fdi.sensor_subset(ys, mask)
-        result = run_estimator(
-            smf, model, subset, prior=prior, state=start, k0=k0, save=_FLAG_FIELDS
-        )
-        return _flags(result, states), result.final_state
-
-    return run_scenarios(run_one, masks, states, ys, biases)
+    return tuple(jnp.concatenate(segments, axis=-1) for segments in zip(*parts, strict=True))
 
 
 def bank_monte_carlo_function(model, prior, simulate, fault_bias, bank: FilterBank):
