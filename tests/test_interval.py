@@ -227,6 +227,32 @@ def test_remainder_bound_is_nan_where_the_value_may_jump():
     assert np.all(np.isfinite(np.asarray(product)))
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_remainder_bound_is_nan_where_a_cast_to_integers_or_booleans_may_change(dtype):
+    """A comparison turned into a number and a truncation to integers are steps, which JAX
+    differentiates as constants: their bound was 0 across the step, where the sampled remainder
+    reaches the step's height. Across a step: NaN; over a box where the cast is constant: the
+    bound of the rest; a cast of an exact integer argument is no step."""
+    bound = jax.jit(remainder_bound, static_argnums=0)
+    shape = 0.01 * jnp.eye(2, dtype=dtype)
+    step = lambda x: 0.5 * (x > 0.1).astype(x.dtype)
+    truncated = lambda x: x.astype(jnp.int32).astype(x.dtype) + x**2
+    over_step = jnp.asarray([0.05, 0.5], dtype)  # x_1 in [-0.05, 0.15]: the step at 0.1
+    over_one = jnp.asarray([0.5, 0.95], dtype)  # x_2 in [0.85, 1.05]: truncation steps at 1
+    assert _sampled_remainders(step, over_step, shape, np.random.default_rng(0), 2000).max() > 0.4
+    assert np.all(np.isnan(np.asarray(bound(step, over_step, shape))))
+    assert np.all(np.isnan(np.asarray(bound(truncated, over_one, shape))))
+    np.testing.assert_array_equal(bound(step, over_one, shape), [0.0, 0.0])
+    np.testing.assert_allclose(bound(truncated, over_step, shape), [0.01, 0.01], rtol=1e-5)
+    # an exact integer (a step index) made a float is no step, and the function is not evaluated
+    # over intervals for it: jnp.prod (reduce_prod) has no interval rule, its Hessian has
+    count = jnp.asarray(3, jnp.int32)
+    scaled = bound(lambda x, n: n.astype(x.dtype) * x, over_step, shape, count)
+    np.testing.assert_array_equal(scaled, [0.0, 0.0])
+    product = bound(lambda x, n: jnp.prod(x)[None] * n.astype(x.dtype), over_step, shape, count)
+    assert np.all(np.isfinite(np.asarray(product))) and float(product[0]) > 0
+
+
 @pytest.mark.parametrize("name", ["trig", "exp_log", "atan", "dot_index"])
 def test_remainder_bound_contains_sampled_remainders(name):
     fn = _model_functions()[name]

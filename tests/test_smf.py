@@ -149,6 +149,19 @@ def test_a_nan_remainder_bound_skips_its_row_and_is_flagged():
     assert status[0] & Status.NONFINITE and np.all(status[1:] & Status.UNBOUNDED)
 
 
+def test_a_step_written_as_a_cast_is_flagged_not_linearised_away():
+    """h(x) = x + 0.015 (x > 0.1) on the first state: JAX differentiates the cast as a constant,
+    so its remainder bound was 0 and the strip, linearised at the prior's centre below the
+    step, held x_1 in [0.31, 0.33] where it is 0.3: a set without the state, status OK. The
+    step lies inside the box: the bound is unknown (NaN), its row is skipped and flagged."""
+    f, states, _, bounds, prior = _decay()
+    h = lambda x: x + jnp.asarray([0.015, 0.0]) * (x > 0.1).astype(x.dtype)
+    ys = jax.vmap(h)(states) + 0.5e-2 * jnp.asarray([1.0, -1.0])
+    result = run(SetMembershipFilter(), BoundedNoiseModel(f, h, *bounds), ys, prior=prior)
+    assert np.all(np.asarray(result.status) & Status.NONFINITE)
+    assert np.all(np.asarray(result.contains(states)))
+
+
 @pytest.mark.parametrize("reading", [np.inf, -np.inf])
 def test_an_infinite_reading_is_an_alarm_not_a_missing_measurement(reading):
     """An infinite y lies in no strip around a finite h(x): EMPTY_SET at its step, where it used

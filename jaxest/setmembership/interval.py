@@ -406,17 +406,46 @@ def _rule(name: str) -> Callable | None:
 
 
 #: the non-smooth primitives :func:`_kink` knows, and what switching branch does: "kink" where
-#: the value stays continuous (the first derivative jumps), "jump" where it need not
+#: the value stays continuous (the first derivative jumps), "jump" where it need not; and
+#: ``convert_element_type`` to or from integers or booleans (:func:`_is_discrete_cast`)
 _NON_SMOOTH = {
     "abs": "kink", "max": "kink", "min": "kink", "reduce_max": "kink", "reduce_min": "kink",
     "sign": "jump", "select_n": "jump",
 }  # fmt: skip
 
 
+def _is_discrete_cast(from_dtype, to_dtype) -> bool:
+    """Whether a ``convert_element_type`` is to or from integers or booleans: a step. Truncating
+    x to an integer, or a comparison's result turned into a number (``(x > 0).astype(float)``),
+    changes value in jumps, and JAX differentiates it as a constant (a zero derivative), so
+    neither the Taylor nor the mean-value bound sees it."""
+    floating = lambda dtype: jnp.issubdtype(dtype, jnp.inexact)
+    return not (floating(from_dtype) and floating(to_dtype))
+
+
+def _makes_a_step(cast_eqn) -> bool:
+    """Whether a ``convert_element_type`` equation may start a step: a float truncated to
+    integers or booleans, or a comparison's result made a number. A cast from integers is left
+    out: its integer is exact (a step index ``k``) or comes from one of those casts, so counting
+    it would only evaluate the primal over intervals for nothing."""
+    source = cast_eqn.invars[0].aval.dtype
+    is_float = jnp.issubdtype(source, jnp.inexact)
+    return (source == jnp.bool_ or is_float) and _is_discrete_cast(
+        source, cast_eqn.params["new_dtype"]
+    )
+
+
 def _kink(name: str, params, invals) -> tuple[str, Array] | None:
-    """For a primitive of :data:`_NON_SMOOTH`, ``(kind, flag)``: ``flag`` whether it may switch
-    branch inside its arguments' intervals (a scalar boolean); ``None`` otherwise (or where the
-    argument that decides the branch is exact)."""
+    """For a primitive of :data:`_NON_SMOOTH` or a discrete cast, ``(kind, flag)``: ``flag``
+    whether it may switch branch (a cast: change value) inside its arguments' intervals (a
+    scalar boolean); ``None`` otherwise (or where the argument that decides the branch is
+    exact)."""
+    if name == "convert_element_type":
+        x = invals[0]
+        if not (isinstance(x, Interval) and _is_discrete_cast(x.dtype, params["new_dtype"])):
+            return None
+        cast = lambda v: lax.convert_element_type(v, params["new_dtype"])
+        return "jump", jnp.any(cast(x.lo) != cast(x.hi))
     if name not in _NON_SMOOTH:
         return None
     if name in ("max", "min"):
@@ -462,9 +491,8 @@ def _apply(eqn, invals, kinks=None):
         x = invals[0]
         out = _both(eqn.primitive, x, **params)
         narrowing = (
-            jnp.finfo(out.dtype).bits < jnp.finfo(x.dtype).bits
-            if jnp.issubdtype(x.dtype, jnp.floating)
-            else False
+            not _is_discrete_cast(x.dtype, out.dtype)
+            and jnp.finfo(out.dtype).bits < jnp.finfo(x.dtype).bits
         )
         return _widen(out.lo, out.hi, 1) if narrowing else out
     if name in _structural:
@@ -530,7 +558,9 @@ def _shapes(box: Interval, args):
 def _has_non_smooth(jaxpr) -> bool:
     """Whether ``jaxpr`` or a jaxpr inside it applies a primitive :func:`_kink` knows."""
     return any(
-        eqn.primitive.name in _NON_SMOOTH or any(map(_has_non_smooth, inner_jaxprs(eqn)))
+        eqn.primitive.name in _NON_SMOOTH
+        or (eqn.primitive.name == "convert_element_type" and _makes_a_step(eqn))
+        or any(map(_has_non_smooth, inner_jaxprs(eqn)))
         for eqn in jaxpr.eqns
     )
 
@@ -538,7 +568,8 @@ def _has_non_smooth(jaxpr) -> bool:
 def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None:
     """``(kink, jump)``: whether ``fn(x, *args)`` may have, for x in ``box``, a point where its
     first derivative jumps (a continuous non-smooth operation switching branch: abs, max, min)
-    or where its value may jump (sign, ``where`` on a condition that changes over the box);
+    or where its value may jump (sign, ``where`` on a condition that changes over the box, a
+    cast to or from integers or booleans whose value changes over it);
     ``None`` where ``fn`` has no non-smooth operation at all (:func:`_kink`)."""
     example, arg_shapes = _shapes(box, args)
     primal = jax.make_jaxpr(fn)(example, *arg_shapes)
@@ -597,8 +628,10 @@ def remainder_bound(
     it has no Hessian there, and the mean-value form for a Lipschitz function is used instead:
     fn(x) - fn(c) - J(c)(x - c) = (J(xi) - J(c))(x - c), J(xi) in the hull of the branches'
     Jacobians over the box, so alpha_i = sum_j |J_ij(box) - J_ij(c)| r_j (first order in r).
-    Where its value may jump (sign, ``where`` on a condition that changes over the box) no
-    bound holds: NaN, which the set-membership filter flags.
+    Where its value may jump (sign, ``where`` on a condition that changes over the box, a cast
+    to or from integers or booleans whose value changes over it: ``(x > 0).astype(float)``,
+    ``x.astype(int)``) no bound holds: NaN, which the set-membership filter flags. JAX
+    differentiates such a cast as a constant, so without this check the bound of a step is 0.
 
     An ``fn`` without non-smooth operations whose Hessian JAX writes as zeros
     (:func:`jaxest._jaxpr.zero_outputs`: an affine ``fn`` such as ``H @ x + b``) is affine: its
