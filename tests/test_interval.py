@@ -214,7 +214,8 @@ def test_remainder_bound_is_nan_where_the_value_may_jump():
     which the set-membership filter flags); over a set where they do not switch, the bound is
     the smooth one (zero for a constant branch)."""
     step = lambda x: jnp.where(x > 0, 1.0, 0.0)
-    for fn in (jnp.sign, step):
+    integer_step = lambda x: jnp.where(x > 0, 1, 0) * x  # raised an OverflowError (inf as int)
+    for fn in (jnp.sign, step, integer_step):
         across = remainder_bound(fn, jnp.zeros(1), 0.01 * jnp.eye(1))
         assert np.all(np.isnan(np.asarray(across)))
         away = remainder_bound(fn, jnp.ones(1), 0.01 * jnp.eye(1))

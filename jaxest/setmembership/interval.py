@@ -317,6 +317,15 @@ def _compare(a, b, name) -> Interval:
     return Interval(~overlap, ~exact)  # ne
 
 
+def _extremes(dtype) -> tuple:
+    """The largest and the smallest value of ``dtype`` (floats: the infinities)."""
+    if jnp.issubdtype(dtype, jnp.inexact):
+        return jnp.inf, -jnp.inf
+    if dtype == jnp.bool_:
+        return True, False
+    return jnp.iinfo(dtype).max, jnp.iinfo(dtype).min
+
+
 def select_n(pred, *cases) -> Interval | Array:
     if not isinstance(pred, Interval):
         if not any(isinstance(c, Interval) for c in cases):
@@ -327,8 +336,9 @@ def select_n(pred, *cases) -> Interval | Array:
         )
     cases = [lift(c) for c in cases]
     first, last = pred.lo.astype(jnp.int32), pred.hi.astype(jnp.int32)
-    inf = jnp.asarray(jnp.inf, cases[0].dtype)
-    lo, hi = jnp.full(cases[0].shape, inf), jnp.full(cases[0].shape, -inf)
+    largest, smallest = _extremes(cases[0].dtype)  # the empty hull's ends
+    lo = jnp.full(cases[0].shape, largest, cases[0].dtype)
+    hi = jnp.full(cases[0].shape, smallest, cases[0].dtype)
     for i, c in enumerate(cases):
         take = (first <= i) & (i <= last)
         lo = jnp.where(take, jnp.minimum(lo, c.lo), lo)
