@@ -162,6 +162,16 @@ def test_a_step_written_as_a_cast_is_flagged_not_linearised_away():
     assert np.all(np.asarray(result.contains(states)))
 
 
+def test_a_function_the_interval_bound_cannot_evaluate_is_named_with_the_way_out():
+    f, _, ys, bounds, prior = _decay()
+    for model, name, primitive in (
+        (BoundedNoiseModel(lambda x: jnp.mod(x, 3.0), lambda x: x, *bounds), "f", "rem"),
+        (BoundedNoiseModel(f, lambda x: x + 0.01 * jnp.round(x), *bounds), "h", "round"),
+    ):
+        with pytest.raises(NotImplementedError, match=f"^{name}: .*'{primitive}'.*{name}_rem"):
+            run(SetMembershipFilter(), model, ys, prior=prior)
+
+
 @pytest.mark.parametrize("reading", [np.inf, -np.inf])
 def test_an_infinite_reading_is_an_alarm_not_a_missing_measurement(reading):
     """An infinite y lies in no strip around a finite h(x): EMPTY_SET at its step, where it used

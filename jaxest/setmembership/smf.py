@@ -119,7 +119,15 @@ class BoundedNoiseModel(eqx.Module):
         the closed-form ``custom_bound`` if given, else the automatic interval bound."""
         if custom_bound is not None:
             return custom_bound(center, shape, u)
-        return remainder_bound(lambda x: fn(x, u, k), center, shape)
+        try:
+            return remainder_bound(lambda x: fn(x, u, k), center, shape)
+        except NotImplementedError as error:
+            name = "f" if fn.__name__ == "transition" else "h"
+            raise NotImplementedError(
+                f"{name}: its automatic remainder bound cannot be computed ({error}); give "
+                f"{name}_remainder=(center, shape, u) -> half-widths, a guaranteed bound of "
+                "your own, or write it with operations jaxest.setmembership.interval has rules for"
+            ) from error
 
 
 class SMFState(eqx.Module):
