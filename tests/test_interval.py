@@ -254,6 +254,27 @@ def test_remainder_bound_is_nan_where_a_cast_to_integers_or_booleans_may_change(
     assert np.all(np.isfinite(np.asarray(product))) and float(product[0]) > 0
 
 
+def test_remainder_bound_is_nan_where_atan2_may_cross_its_branch_cut():
+    """atan2 is pi on the negative x axis and near -pi just below it, and undefined at the
+    origin; JAX's derivatives are smooth across the cut, so a bearing's bound there was 0.024
+    where the sampled remainder reaches 2 pi. Away from the cut and the origin the bound holds."""
+    bearing = lambda v: jnp.arctan2(v[1:], v[:1])
+    shape = 0.01 * jnp.eye(2)
+    on_the_cut = jnp.asarray([-1.0, 0.0])
+    assert _sampled_remainders(bearing, on_the_cut, shape, np.random.default_rng(1)).max() > 6
+    assert np.isnan(float(remainder_bound(bearing, on_the_cut, shape)[0]))
+    assert np.isnan(float(remainder_bound(bearing, jnp.asarray([0.05, 0.05]), shape)[0]))
+    for center in ([-1.0, 0.5], [1.0, 0.0]):  # beside the cut; across the positive x axis
+        center = jnp.asarray(center)
+        alpha = np.asarray(remainder_bound(bearing, center, shape))
+        sampled = _sampled_remainders(bearing, center, shape, np.random.default_rng(2))
+        assert np.all(np.isfinite(alpha)) and np.all(sampled <= alpha)
+    # an exact y (the rule lifts it; it raised an AttributeError): pi throughout, or a jump at 0
+    angle = lambda v: jnp.arctan2(jnp.zeros(1), v[:1])
+    np.testing.assert_array_equal(remainder_bound(angle, jnp.asarray([-0.5, 0.0]), shape), [0.0])
+    assert np.isnan(float(remainder_bound(angle, jnp.asarray([0.05, 0.0]), shape)[0]))
+
+
 @pytest.mark.parametrize("name", ["trig", "exp_log", "atan", "dot_index"])
 def test_remainder_bound_contains_sampled_remainders(name):
     fn = _model_functions()[name]

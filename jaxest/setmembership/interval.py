@@ -240,6 +240,7 @@ def tan(x: Interval) -> Interval:
 def atan2(y: Interval, x: Interval) -> Interval:
     """The angle of the box y x x: attained at its corners unless the box touches the origin or
     the branch cut (the negative x axis), where it is [-pi, pi]."""
+    y, x = lift(y), lift(x)
     corners = [jnp.arctan2(yy, xx) for yy in (y.lo, y.hi) for xx in (x.lo, x.hi)]
     out = _widen(
         jnp.min(jnp.stack(corners), axis=0), jnp.max(jnp.stack(corners), axis=0), _LIBM_ULPS
@@ -420,7 +421,7 @@ def _rule(name: str) -> Callable | None:
 #: ``convert_element_type`` to or from integers or booleans (:func:`_is_discrete_cast`)
 _NON_SMOOTH = {
     "abs": "kink", "max": "kink", "min": "kink", "reduce_max": "kink", "reduce_min": "kink",
-    "sign": "jump", "select_n": "jump",
+    "sign": "jump", "select_n": "jump", "atan2": "jump",
 }  # fmt: skip
 
 
@@ -461,6 +462,11 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     if name in ("max", "min"):
         a, b = lift(invals[0]), lift(invals[1])
         return _NON_SMOOTH[name], jnp.any((a.lo < b.hi) & (b.lo < a.hi))
+    if name == "atan2":  # pi on the negative x axis, near -pi just below it; none at 0
+        y, x = lift(invals[0]), lift(invals[1])
+        across_the_cut = (x.lo < 0) & (y.lo < 0) & (y.hi >= 0)
+        at_the_origin = (x.lo <= 0) & (x.hi >= 0) & (y.lo <= 0) & (y.hi >= 0)
+        return _NON_SMOOTH[name], jnp.any(across_the_cut | at_the_origin)
     x = invals[0]
     if not isinstance(x, Interval):
         return None
@@ -579,7 +585,8 @@ def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None
     """``(kink, jump)``: whether ``fn(x, *args)`` may have, for x in ``box``, a point where its
     first derivative jumps (a continuous non-smooth operation switching branch: abs, max, min)
     or where its value may jump (sign, ``where`` on a condition that changes over the box, a
-    cast to or from integers or booleans whose value changes over it);
+    cast to or from integers or booleans whose value changes over it, atan2 across its branch
+    cut or at the origin);
     ``None`` where ``fn`` has no non-smooth operation at all (:func:`_kink`)."""
     example, arg_shapes = _shapes(box, args)
     primal = jax.make_jaxpr(fn)(example, *arg_shapes)
@@ -640,8 +647,9 @@ def remainder_bound(
     Jacobians over the box, so alpha_i = sum_j |J_ij(box) - J_ij(c)| r_j (first order in r).
     Where its value may jump (sign, ``where`` on a condition that changes over the box, a cast
     to or from integers or booleans whose value changes over it: ``(x > 0).astype(float)``,
-    ``x.astype(int)``) no bound holds: NaN, which the set-membership filter flags. JAX
-    differentiates such a cast as a constant, so without this check the bound of a step is 0.
+    ``x.astype(int)``; atan2 across the negative x axis or at the origin) no bound holds: NaN,
+    which the set-membership filter flags. JAX differentiates such a cast as a constant, and
+    atan2 as smooth across its cut, so without this check their bounds miss the jump.
 
     An ``fn`` without non-smooth operations whose Hessian JAX writes as zeros
     (:func:`jaxest._jaxpr.zero_outputs`: an affine ``fn`` such as ``H @ x + b``) is affine: its
