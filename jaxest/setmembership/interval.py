@@ -462,7 +462,7 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     if name in ("max", "min"):
         a, b = lift(invals[0]), lift(invals[1])
         return _NON_SMOOTH[name], jnp.any((a.lo < b.hi) & (b.lo < a.hi))
-    if name == "atan2":  # pi on the negative x axis, near -pi just below it; none at 0
+    if name == "atan2":  # pi on the negative x axis, near -pi just below it; undefined at 0
         y, x = lift(invals[0]), lift(invals[1])
         across_the_cut = (x.lo < 0) & (y.lo < 0) & (y.hi >= 0)
         at_the_origin = (x.lo <= 0) & (x.hi >= 0) & (y.lo <= 0) & (y.hi >= 0)
