@@ -253,7 +253,9 @@ class SetMembershipFilter(AbstractEstimator):
             # an infinite reading lies in no strip of finite half-width around a finite h(x)
             impossible = jnp.isinf(y[i]) & jnp.isfinite(half_widths[i])
             z = jnp.where(observed, y[i], 0.0) - h_c[i] + H[i] @ center  # eq 24
-            c_i, P_i, empty_i = intersect_strip(new_center, new_shape, H[i], z, half_widths[i])
+            # a skipped row's NaN half-width kept out of the arithmetic, or its gradient is NaN
+            half_width = jnp.where(observed, half_widths[i], 1.0)
+            c_i, P_i, empty_i = intersect_strip(new_center, new_shape, H[i], z, half_width)
             new_center = jnp.where(observed, c_i, new_center)
             new_shape = jnp.where(observed, P_i, new_shape)
             empty = empty | (observed & empty_i) | impossible
