@@ -440,10 +440,8 @@ def _makes_a_step(cast_eqn) -> bool:
     out: its integer is exact (a step index ``k``) or comes from one of those casts, so counting
     it would only evaluate the primal over intervals for nothing."""
     source = cast_eqn.invars[0].aval.dtype
-    is_float = jnp.issubdtype(source, jnp.inexact)
-    return (source == jnp.bool_ or is_float) and _is_discrete_cast(
-        source, cast_eqn.params["new_dtype"]
-    )
+    from_integers = jnp.issubdtype(source, jnp.integer)
+    return not from_integers and _is_discrete_cast(source, cast_eqn.params["new_dtype"])
 
 
 def _kink(name: str, params, invals) -> tuple[str, Array] | None:

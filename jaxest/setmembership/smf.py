@@ -114,15 +114,20 @@ class BoundedNoiseModel(eqx.Module):
         g = lambda x: fn(x, u, k)
         return g(center), jax.jacfwd(g)(center)
 
-    def remainder(self, fn, custom_bound, center, shape, u, k):
-        """Half-widths of the remainder of ``fn`` linearised at c, over E(c, P) (eqs 11, 20):
-        the closed-form ``custom_bound`` if given, else the automatic interval bound."""
+    def remainder(self, name: str, center, shape, u, k):
+        """Half-widths of the remainder of f (``name`` "f") or h ("h") linearised at c, over
+        E(c, P) (eqs 11, 20): its closed-form bound (``f_remainder`` / ``h_remainder``) if
+        given, else the automatic interval bound."""
+        fn, custom_bound = (
+            (self.transition, self.f_remainder)
+            if name == "f"
+            else (self.observation, self.h_remainder)
+        )
         if custom_bound is not None:
             return custom_bound(center, shape, u)
         try:
             return remainder_bound(lambda x: fn(x, u, k), center, shape)
         except NotImplementedError as error:
-            name = "f" if fn.__name__ == "transition" else "h"
             raise NotImplementedError(
                 f"{name}: its automatic remainder bound cannot be computed ({error}); give "
                 f"{name}_remainder=(center, shape, u) -> half-widths, a guaranteed bound of "
@@ -244,7 +249,7 @@ class SetMembershipFilter(AbstractEstimator):
         """Eqs 18-36, with h(c) and its Jacobian H at c given (``linearised``); returns
         ``(center, shape, empty, remainder)``."""
         h_c, H = linearised
-        alpha = model.remainder(model.observation, model.h_remainder, center, shape, u, k)
+        alpha = model.remainder("h", center, shape, u, k)
         half_widths = model.measurement_bound + alpha  # eq 21
         new_center, new_shape, empty = center, shape, jnp.zeros((), bool)
         for i in range(H.shape[0]):
@@ -271,7 +276,7 @@ class SetMembershipFilter(AbstractEstimator):
     def time_update(self, model, center, shape, u, k=0):
         """Eqs 7-17; returns ``(center, shape, remainder)``."""
         f_c, F = model.linearise(model.transition, center, u, k)
-        alpha = model.remainder(model.transition, model.f_remainder, center, shape, u, k)
+        alpha = model.remainder("f", center, shape, u, k)
         image, image_error = linear_image(F, shape)  # eq 15
         shape = add_box(image, model.process_bound + alpha, image_error)  # eqs 16-17, 12-13
         return f_c, shape, alpha
@@ -306,7 +311,7 @@ class SetMembershipFilter(AbstractEstimator):
         """
         h_c, H = linearised
         everything = whole_space(model.state_dim, center.dtype)
-        bound = model.remainder(model.observation, model.h_remainder, center, everything, u, k)
+        bound = model.remainder("h", center, everything, u, k)
         affine = jnp.all(bound == 0)
         observed = jnp.isfinite(y)
         impossible = jnp.any(jnp.isinf(y))
