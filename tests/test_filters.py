@@ -270,15 +270,22 @@ def test_status_flags_nonfinite_inside_jit():
     assert "NONFINITE" in je.Status.describe(int(res.status[0]))
 
 
-@pytest.mark.parametrize("Filter", [SVDEKF, ImprovedSVDKF], ids=lambda f: f.__name__)
-def test_indefinite_covariances_inside_jit_are_flagged_not_repaired(Filter):
-    """R, Q or P0 with a negative eigenvalue, traced (the argument checks cannot see it): the SVD
-    filters' status says so from the first step, where they used to clip the eigenvalue to 0
-    and run on another model with status OK. A positive semidefinite Q of rank one, formed with
-    rounding, still runs cleanly."""
+SVD_FORMS = [SVDEKF(), ImprovedSVDKF(), je.UKF(form="svd"), je.CubatureKF(form="svd")]
+
+
+@pytest.mark.parametrize(
+    "estimator", SVD_FORMS, ids=["SVDEKF", "ImprovedSVDKF", "UKF-svd", "CKF-svd"]
+)
+def test_indefinite_covariances_inside_jit_are_flagged_not_repaired(estimator):
+    """R, Q or P0 with a negative eigenvalue, traced (the argument checks cannot see it): the
+    filters that factor them by a symmetric SVD say so in the status from the first step, where
+    they used to clip the eigenvalue to 0 and run on another model with status OK (the SVD
+    filters, and until 2026-11-30 the sigma-point filters' SVD form, whose log-likelihood was the
+    same for R = diag(r, -0.1) and diag(r, -2)). A positive semidefinite Q of rank one, formed
+    with rounding, still runs cleanly."""
     model, prior, sim = linear_problem(seed=11, n=3, m=2, T=10)
     flip = jnp.diag(jnp.asarray([1.0, 1.0, -1.0]))
-    run = jax.jit(lambda m, p: je.run(Filter(), m, sim.y, prior=p))
+    run = jax.jit(lambda m, p: je.run(estimator, m, sim.y, prior=p))
     for bad_model, bad_prior in (
         (je.LinearGaussian(model.F, model.H, model.Q, model.R * jnp.asarray([1.0, -1.0])), prior),
         (je.LinearGaussian(model.F, model.H, flip @ model.Q @ flip - 0.5 * jnp.eye(3), model.R), prior),

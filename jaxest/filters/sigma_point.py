@@ -72,7 +72,7 @@ from jaxest.linalg import (
     cho_solve_lower,
     cholesky,
     cov_from_factor,
-    factor_psd,
+    factor_psd_or_nan,
     keep_factors,
     right_svd,
     solve_triangular,
@@ -129,10 +129,11 @@ def eigen_tangent(U, D, dP):
 
 @jax.custom_jvp
 def eigen_factor(P):
-    """:func:`~jaxest.linalg.factor_psd` (U, D with P = U diag(D)^2 U^T, D descending, negative
-    eigenvalues clipped to D = 0) with the tangent of U and D themselves, not only of P: the
-    SVD form's sigma points depend on U diag(D)."""
-    return factor_psd(P)
+    """:func:`~jaxest.linalg.factor_psd_or_nan` (U, D with P = U diag(D)^2 U^T, D descending;
+    D NaN where P is indefinite beyond rounding, so an indefinite Q, R or prior shows in the
+    status under ``jit`` instead of being clipped to a different model) with the tangent of U
+    and D themselves, not only of P: the SVD form's sigma points depend on U diag(D)."""
+    return factor_psd_or_nan(P)
 
 
 @eigen_factor.defjvp
