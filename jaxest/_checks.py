@@ -55,15 +55,16 @@ def check_nonnegative_int(name: str, value) -> None:
 
 
 def as_array(name: str, value):
-    """``value`` as something with a shape; Python numbers and lists become NumPy arrays."""
-    if value is None:
-        raise ValueError(f"{name}: expected an array, got None")
-    if hasattr(value, "shape") and hasattr(value, "ndim"):
+    """``value`` itself if it is an array (JAX or NumPy), a Python number as a NumPy array.
+    Anything else, a list included, is a ``ValueError`` naming ``name``: JAX's functions take
+    no lists (a list inside a model is a pytree of scalars, one argument each under ``jit``),
+    and failed deep inside the library with a ``TypeError`` that named no argument."""
+    if hasattr(value, "shape") and hasattr(value, "ndim") and hasattr(value, "dtype"):
         return value
-    try:
+    if isinstance(value, int | float) and not isinstance(value, bool):
         return np.asarray(value, dtype=float)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{name}: expected an array, got {type(value).__name__}") from err
+    hint = "; convert it with jnp.asarray" if isinstance(value, list | tuple) else ""
+    raise ValueError(f"{name}: expected an array, got {type(value).__name__}{hint}")
 
 
 def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=False, ndim=2):
@@ -124,8 +125,9 @@ def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""
 
 
 def check_measurements(ys):
-    """``ys`` is (T, m), real, and has no +-inf (NaN marks a missing entry; inf is an error)."""
-    check_sequence("ys", ys)
+    """``ys`` is a (T, m) array, real, and has no +-inf (NaN marks a missing entry; inf is an
+    error)."""
+    check_sequence("ys", as_array("ys", ys))
     if jnp.issubdtype(jnp.result_type(ys), jnp.complexfloating):
         raise ValueError(f"ys: must be real, got {jnp.result_type(ys)}")
     if is_concrete(ys) and np.any(np.isinf(np.asarray(ys, dtype=np.float64))):
@@ -143,15 +145,16 @@ def check_gaussian_prior(prior, n: int | None = None) -> int:
     """``prior`` is a :class:`~jaxest.Gaussian` with a vector mean and an SPD covariance."""
     if not isinstance(prior, Gaussian):
         raise ValueError(f"prior: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}")
+    for name, value in (("prior.mean", prior.mean), ("prior.cov", prior.cov)):
+        dtype = as_array(name, value).dtype
+        if not jnp.issubdtype(dtype, jnp.floating):  # an integer one changed the scan's carry
+            raise ValueError(f"{name}: must be real floating point, got {dtype}")
     if np.ndim(prior.mean) != 1:
         raise ValueError(f"prior.mean: expected a vector, got shape {np.shape(prior.mean)}")
     size = np.shape(prior.mean)[0]
-    if not jnp.issubdtype(jnp.result_type(prior.mean), jnp.floating):
-        raise ValueError(
-            f"prior.mean: must be real floating point, got {jnp.result_type(prior.mean)}"
-        )
     if n is not None and size != n:
         raise ValueError(f"prior.mean: expected shape ({n},) to match the model, got ({size},)")
+    check_matrix("prior.mean", prior.mean, (size,), ndim=1)  # finite
     if np.ndim(prior.cov) != 2:
         raise ValueError(f"prior.cov: expected shape ({size}, {size}), got {np.shape(prior.cov)}")
     check_matrix("prior.cov", prior.cov, (size, size), spd=True)

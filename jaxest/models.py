@@ -353,17 +353,23 @@ def simulate(
         ) from None
     if steps < 0:
         raise ValueError(f"num_steps: must not be negative, got {steps}")
+    if not isinstance(x0, Gaussian):
+        x0 = jnp.asarray(x0)  # an initial state given as a list or a number, too
+    if isinstance(model, LinearGaussian):
+        check_matrix("model.F", model.F, square=True)
     check_inputs_used(model, inputs)
     check_time_axes(model, 0, steps)
     if inputs is not None and any(jnp.shape(a)[:1] != (steps,) for a in jax.tree.leaves(inputs)):
         raise ValueError(f"inputs: expected a leading time axis of num_steps = {steps}")
     if isinstance(model, LinearGaussian):
         n = model.F.shape[-1]
-        x0_shape = (x0.mean if isinstance(x0, Gaussian) else jnp.asarray(x0)).shape
+        x0_shape = (x0.mean if isinstance(x0, Gaussian) else x0).shape
         if x0_shape != (n,):
             raise ValueError(f"x0: expected shape ({n},) for the model's state, got {x0_shape}")
+        check_matrix("model.H", model.H, (None, n))
+        if model.G is not None:
+            check_matrix("model.G", model.G, (n, None))
         m, q = model.H.shape[-2], n if model.G is None else model.G.shape[-1]
-        check_matrix("model.H", model.H, (m, n))
         check_matrix("model.Q", model.Q, (q, q), psd=True)
         check_matrix("model.R", model.R, (m, m), psd=True)
     elif isinstance(model, NonlinearGaussian):
@@ -380,7 +386,6 @@ def _simulate(model, x0, num_steps: int, key, inputs, process_noise, measurement
     key0, key = jax.random.split(key)
     if isinstance(x0, Gaussian):
         x0 = x0.mean + gaussian_noise(key0, x0.cov)
-    x0 = jnp.asarray(x0)
     keys = jax.random.split(key, (num_steps, 2))
 
     def body(x, args):

@@ -63,6 +63,15 @@ def test_good_arguments_pass():
             "prior.cov: contains NaN",
         ),
         (lambda m, y, p: (m, y, je.Gaussian(jnp.zeros(2), jnp.ones((2, 3)))), "prior.cov"),
+        # a NaN prior mean ran, status NONFINITE; the lists below raised TypeErrors from inside
+        (lambda m, y, p: (m, y, je.Gaussian(p.mean.at[1].set(jnp.nan), p.cov)), "prior.mean: con"),
+        (lambda m, y, p: (m, y.tolist(), p), "^ys: expected an array, got list"),
+        (lambda m, y, p: (m, y, je.Gaussian([0.0, 0.0], p.cov)), "^prior.mean: expected an array"),
+        (lambda m, y, p: (m, y, je.Gaussian(p.mean, p.cov.tolist())), "^prior.cov: expected an"),
+        (
+            lambda m, y, p: (je.LinearGaussian(m.F.tolist(), m.H, m.Q, m.R), y, p),
+            "^model.F: expected an array, got list",  # it blamed prior.mean
+        ),
         (lambda m, y, p: (m, y, je.Gaussian(jnp.zeros(3), jnp.eye(3))), "prior.mean"),
         (lambda m, y, p: (m, y, (p.mean, p.cov)), "prior"),
         (
@@ -125,17 +134,20 @@ def test_input_matrices_must_fit_the_inputs_width_and_the_state():
 
 
 def test_dtypes_that_do_not_fit_are_named():
-    """A float32 prior with a float64 model, an integer prior mean and complex measurements
-    raised a TypeError from inside the scan (the state changed dtype after one step), and the
-    parallel filter returned a complex log-likelihood."""
+    """A float32 prior with a float64 model, an integer prior mean or covariance and complex
+    measurements raised a TypeError from inside the scan (the state changed dtype after one
+    step), and the parallel filter returned a complex log-likelihood."""
     model, ys, prior = good()
     narrow = je.Gaussian(prior.mean.astype(jnp.float32), prior.cov.astype(jnp.float32))
     integer = je.Gaussian(jnp.zeros(2, jnp.int32), prior.cov)
+    integer_cov = je.Gaussian(prior.mean, jnp.eye(2, dtype=jnp.int32))
     for estimator in (KalmanFilter(), je.ParallelKalmanFilter()):
         with pytest.raises(ValueError, match="^prior: is float32, narrower than"):
             je.run(estimator, model, ys, prior=narrow)
         with pytest.raises(ValueError, match="^prior.mean: must be real floating point"):
             je.run(estimator, model, ys, prior=integer)
+        with pytest.raises(ValueError, match="^prior.cov: must be real floating point"):
+            je.run(estimator, model, ys, prior=integer_cov)
         with pytest.raises(ValueError, match="^ys: must be real"):
             je.run(estimator, model, ys.astype(jnp.complex128), prior=prior)
     single = jax.tree.map(lambda a: a.astype(jnp.float32), (model, ys, prior))
@@ -202,6 +214,11 @@ def test_simulate_names_an_initial_state_of_the_wrong_size():
     model, _, _ = good()  # it raised a TypeError from inside the traced scan
     with pytest.raises(ValueError, match=r"^x0: expected shape \(2,\)"):
         je.simulate(model, jnp.zeros(3), 5, jax.random.key(0))
+    as_list = je.simulate(model, [1.0, 2.0], 5, jax.random.key(0))  # a list is an initial state
+    np.testing.assert_array_equal(as_list.states[0], [1.0, 2.0])
+    listed = je.LinearGaussian(model.F.tolist(), model.H, model.Q, model.R)
+    with pytest.raises(ValueError, match="^model.F: expected an array, got list"):  # had no shape
+        je.simulate(listed, jnp.zeros(2), 5, jax.random.key(0))
 
 
 def test_time_varying_matrices_must_cover_the_steps_a_run_reads():
