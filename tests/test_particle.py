@@ -82,6 +82,20 @@ def test_zero_weights_are_never_resampled():
         assert set(np.unique(np.asarray(idx))) <= {1, 3}
 
 
+@pytest.mark.parametrize(
+    "weights, match",
+    [
+        ([1.0, -1.0, 3.0, 0.0], "non-negative"),  # picked the negative one: [1, 1, 3, 3]
+        ([0.0, 0.0, 0.0, 0.0], "positive sum"),
+        ([1.0, np.nan, 1.0, 1.0], "NaN"),
+        ([[0.5, 0.5], [0.5, 0.5]], "a vector"),
+    ],
+)
+def test_resample_names_weights_that_are_not_weights(weights, match):
+    with pytest.raises(ValueError, match=f"^weights: .*{match}"):
+        resample(jax.random.key(0), jnp.asarray(weights))
+
+
 def test_resampling_searches_by_a_loop_on_the_cpu_and_by_a_sort_on_gpus():
     """The platform switch of the inverse-CDF search: the CUDA program sorts and the CPU program
     loops (both lowered here, on the CPU), and the sort finds the same indices as the binary
@@ -313,6 +327,31 @@ def test_all_weights_underflow_sets_the_status_bit_with_finite_outputs(dtype):
     for a in (r.mean, r.cov, r.ess, r.loglik_terms, r.particles, r.loglik):
         assert np.all(np.isfinite(np.asarray(a)))
     assert "WEIGHTS_DEGENERATE" in je.ParticleStatus.describe(r.any_status)
+
+
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_weights_sum_to_one_where_huge_log_weights_tie_by_rounding(dtype):
+    """A measurement far out but finite in the log-densities (1e20 in float64, 1e8 in float32):
+    the log-weights are about -1e40 (-1e16) and many tie by rounding. Normalised by
+    log w - logsumexp(log w) each tied one had W = 1: the weights summed to up to N, the ESS fell
+    below one and the "mean" was a sum of particles (float64: 407.9 at N = 500), status OK."""
+    prior = je.Gaussian(jnp.zeros(1, dtype), jnp.eye(1, dtype=dtype))
+    big = 1e8 if dtype == jnp.float32 else 1e20
+    ys = jnp.asarray([[0.1], [big], [0.2]], dtype)
+    N = 64
+    r = je.run(
+        je.ParticleFilter(N),
+        scalar_model(dtype=dtype),
+        ys,
+        prior=prior,
+        key=jax.random.key(1),
+        save=je.SaveAt(fields=("mean", "ess", "particles", "log_weights")),
+    )
+    W = np.exp(np.asarray(r.log_weights, np.float64))
+    np.testing.assert_allclose(W.sum(axis=1), 1.0, rtol=N * float(jnp.finfo(dtype).eps))
+    assert np.all((np.asarray(r.ess) >= 1 - 1e-3) & (np.asarray(r.ess) <= N * (1 + 1e-3)))
+    particles, mean = np.asarray(r.particles)[..., 0], np.asarray(r.mean)[:, 0]
+    assert np.all((particles.min(axis=1) <= mean) & (mean <= particles.max(axis=1)))
 
 
 @pytest.mark.parametrize(

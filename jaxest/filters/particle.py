@@ -54,9 +54,10 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_gaussian_arguments
+from jaxest._checks import check_gaussian_arguments, check_matrix, is_concrete
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import Status, finite_status, status_where
 from jaxest.filters.common import gaussian_loglik, masked_measurement
@@ -84,8 +85,15 @@ def resample(key, weights: Float[Array, " N"], scheme: str = "systematic") -> In
       particle j gets floor(N W_j) or ceil(N W_j) children.
 
     ``weights`` are non-negative with a positive sum (normalised here); zero-weight particles
-    are never chosen.
+    are never chosen. Known weights that are not (a negative, NaN or infinite weight, or all
+    zero, which picked arbitrary particles) are a ``ValueError``.
     """
+    if np.ndim(weights) != 1:
+        raise ValueError(f"weights: expected a vector, got shape {np.shape(weights)}")
+    check_matrix("weights", weights, ndim=1)  # finite where known
+    known = np.asarray(weights) if is_concrete(weights) else None
+    if known is not None and (np.any(known < 0) or not np.sum(known) > 0):
+        raise ValueError("weights: must be non-negative with a positive sum")
     N = weights.shape[0]
     dtype = weights.dtype
     if scheme == "multinomial":
@@ -183,6 +191,20 @@ class AbstractProposal(eqx.Module):
     @abc.abstractmethod
     def log_prob(self, model, x, transition: GaussianTransition, k, y, u) -> Float[Array, ""]:
         """log q(x | x_{k-1}, y_k)."""
+
+
+def normalise_log_weights(log_w):
+    """log W_i = log w_i - log sum_j w_j, and log sum_j w_j, with the W_i summing to one.
+
+    Normalised relative to the largest log-weight: where the log-weights are huge (a
+    measurement far in a tail: -1e16 in float64, -1e5 in float32), log w_i - logsumexp(log w)
+    rounds the sum's own log(count) away, so k log-weights tied by rounding each got W = 1 (a
+    weighted "mean" summing k particles, an ESS below one). The shift has no derivative (as in
+    ``jax.nn.logsumexp``): the result does not depend on it."""
+    peak = jax.lax.stop_gradient(jnp.max(log_w))
+    shifted = log_w - peak  # <= 0, and 0 at the largest
+    log_sum = jnp.log(jnp.sum(jnp.exp(shifted)))  # in [0, log N]
+    return shifted - log_sum, peak + log_sum
 
 
 class ParticleState(eqx.Module):
@@ -299,10 +321,9 @@ class ParticleFilter(AbstractEstimator):
         log_increment = jnp.where(jnp.isfinite(log_increment), log_increment, -jnp.inf)
         degenerate = ~jnp.any(jnp.isfinite(log_increment))
         log_w = state.log_weights + jnp.where(degenerate, 0.0, log_increment)  # eq 1
-        log_total = jax.nn.logsumexp(log_w)  # eq 2 (the previous weights sum to one)
+        log_W, log_total = normalise_log_weights(log_w)  # eq 2 (previous weights sum to one)
         tiny = jnp.log(jnp.finfo(log_w.dtype).tiny)
         loglik = jnp.where(degenerate, tiny, log_total)
-        log_W = log_w - log_total
         W = jnp.exp(log_W)
         mean, cov = weighted_moments(x, W)
         ess = 1.0 / jnp.sum(W**2)
