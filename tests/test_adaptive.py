@@ -636,6 +636,32 @@ def test_bad_arguments_raise():
         obs.init(model, ObserverPrior(prior.x, jnp.ones(2), prior.P))
 
 
+def test_a_fixed_gain_the_observer_cannot_converge_with_is_named():
+    """A fixed K with A - K C unstable, or a Runge-Kutta step unstable for it: the estimate
+    diverged with status OK until it overflowed (K = [-3, 0]^T: an error above 1 from step 68,
+    NONFINITE at step 354; K = [600, 0]^T at dt = 0.01 in one substep: from step 2, NONFINITE at
+    step 19). RK4 is stable on the negative real axis down to -2.785: 600 dt / 3 = 2 is the
+    fewest substeps. Both are named before tracing, by run and in a closure, and an adequate
+    gain runs."""
+    A, C = jnp.asarray([[0.0, 1.0], [-2.0, -0.5]]), jnp.asarray([[1.0, 0.0]])
+    B = jnp.asarray([[0.0], [1.0]])
+    model = ContinuousLTV(A, B, C, InputEffectiveness(B))
+    prior = ObserverPrior(jnp.zeros(2), jnp.ones(1))
+    ys, us = jnp.zeros((5, 1)), jnp.zeros((5, 1))
+    observer = lambda K, substeps=1: AdaptiveObserver(
+        M=jnp.eye(1), Sigma=jnp.eye(1), K=jnp.asarray(K), dt=0.01, substeps=substeps
+    )
+    unstable, stiff = observer([[-3.0], [0.0]]), observer([[600.0], [0.0]])
+    for obs, match in ((unstable, r"^K: A - K C must be stable.* up to 2.28"),
+                       (stiff, r"^substeps: .* take substeps >= 3 ")):  # fmt: skip
+        with pytest.raises(ValueError, match=match):
+            run(obs, model, ys, prior=prior, inputs=us)
+        with pytest.raises(ValueError, match=match):
+            jax.jit(lambda: obs.init(model, prior))()
+    for obs in (observer([[600.0], [0.0]], substeps=3), observer([[3.0], [2.0]])):
+        assert int(run(obs, model, ys, prior=prior, inputs=us).any_status) == 0
+
+
 def test_aircraft_models():
     A_pub, B_pub = b747()
     A_pr, B_pr = b747(printed=True)

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_matrix
+from jaxest._checks import check_matrix, is_concrete
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status as check_finite_status
 from jaxest.filters.common import masked_measurement
@@ -285,6 +285,50 @@ def _check_tuning(M, Sigma, Q, R, K):
         check_matrix("R", R, spd=True, ndim=2)
 
 
+def rk4_growth(z):
+    """|R(z)| for the classical Runge-Kutta method, R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24: the
+    factor by which one step of length h multiplies a mode e^{lambda t}, z = h lambda."""
+    return np.abs(1 + z + z**2 / 2 + z**3 / 6 + z**4 / 24)
+
+
+def _check_fixed_gain(K, model, dt: float, substeps: int) -> None:
+    """A fixed gain K must make A - K C stable (Hurwitz; the state error and Gamma of eqs 12 and
+    17 evolve by it), and the Runge-Kutta step h = dt / substeps must be stable for it (|R(h
+    lambda)| <= 1 for every eigenvalue lambda: :func:`rk4_growth`). Otherwise the estimate
+    diverged with status OK until it overflowed (K = [-3, 0]^T on a damped oscillator: an error
+    above 1 from step 68, NONFINITE at step 354). Checked for a time-invariant model and a gain
+    whose values are known."""
+    if K is None or callable(model.A) or callable(model.C):
+        return
+    if not all(is_concrete(a) for a in (K, model.A, model.C)):
+        return
+    A, C, K = (np.asarray(a, np.float64) for a in (model.A, model.C, K))
+    if A.ndim != 2 or K.shape != (A.shape[0], C.shape[0]):
+        return  # a misshapen one: init names it (_check_dimensions)
+    eigenvalues = np.linalg.eigvals(A - K @ C)
+    if np.max(eigenvalues.real) >= 0:
+        raise ValueError(
+            f"K: A - K C must be stable for the observer to converge; its eigenvalues "
+            f"{np.round(eigenvalues, 4)} have real parts up to {np.max(eigenvalues.real):.3g}"
+        )
+    stable = lambda count: np.max(rk4_growth(dt / count * eigenvalues)) <= 1
+    if stable(substeps):
+        return
+    enough = substeps
+    while not stable(enough):  # stable for small enough steps: Re lambda < 0
+        enough *= 2
+    low = enough // 2  # unstable
+    while enough - low > 1:
+        middle = (low + enough) // 2
+        low, enough = (low, middle) if stable(middle) else (middle, enough)
+    raise ValueError(
+        f"substeps: a Runge-Kutta step of dt / substeps = {dt / substeps:.3g} is unstable for "
+        f"A - K C (eigenvalues {np.round(eigenvalues, 4)}: one step multiplies a mode by up to "
+        f"{np.max(rk4_growth(dt / substeps * eigenvalues)):.3g}); take substeps >= {enough} "
+        f"or a smaller dt"
+    )
+
+
 def _check_dimensions(M, Sigma, Q, R, K, prior, n, m, p):
     shapes = {"prior.x": (prior.x, (n,)), "prior.theta": (prior.theta, (p,)), "M": (M, (p, p))}
     shapes["Sigma"] = (Sigma, (m, m))
@@ -335,6 +379,12 @@ class AdaptiveObserver(AbstractEstimator):
         """t_k = t0 + k dt."""
         return self.t0 + k * self.dt
 
+    def check(self, model, ys, inputs, prior) -> None:
+        """The fixed gain's stability (:func:`_check_fixed_gain`), before :func:`jaxest.run`
+        traces the model and the gain."""
+        if isinstance(model, ContinuousLTV):
+            _check_fixed_gain(self.K, model, self.dt, self.substeps)
+
     def init(self, model: ContinuousLTV, prior: ObserverPrior) -> AdaptiveState:
         t0 = self.t0
         if not isinstance(prior, ObserverPrior):
@@ -349,6 +399,7 @@ class AdaptiveObserver(AbstractEstimator):
             raise ValueError(f"model.psi: expected an (n, p) = ({n}, p) matrix, got {psi.shape}")
         p = psi.shape[1]
         _check_dimensions(self.M, self.Sigma, self.Q, self.R, self.K, prior, n, m, p)
+        _check_fixed_gain(self.K, model, self.dt, self.substeps)  # where known here (a closure)
         P = None
         if self.K is None:
             if prior.P is None:
