@@ -284,6 +284,15 @@ def _regularised(Q, G):
     return Q + delta * jnp.eye(n, dtype=Q.dtype)
 
 
+def _frobenius(M):
+    """The Frobenius norm, scaled by the largest entry first: ``jnp.linalg.norm`` squares the
+    entries, which overflows in float32 from entries of about 1.8e19 on. Then the status
+    check's ``scale`` was infinite, the relative residual 0 and X certified by nothing."""
+    largest = jnp.max(jnp.abs(M))
+    safe = jnp.where(largest > 0, largest, 1.0)
+    return largest * jnp.linalg.norm(M / safe)
+
+
 def _dare_terms(A, B, Q, R, X):
     """(K, A_c, residual, scale, floor) at X: K = (R + B^T X B)^-1 B^T X A (no R^-1),
     A_c = A - B K and the residual in closed-loop form Q + A_c^T X A_c + K^T R K - X, which
@@ -296,7 +305,7 @@ def _dare_terms(A, B, Q, R, X):
     K = cho_solve_lower(cholesky(symmetrize(R + BtX @ B)), BtX @ A)
     Ac = A - B @ K
     residual = symmetrize(Q + Ac.T @ X @ Ac + K.T @ R @ K - X)
-    norm = jnp.linalg.norm
+    norm = _frobenius
     scale = norm(Q) + (norm(Ac) ** 2 + 1) * norm(X)
     return K, Ac, residual, scale, scale + norm(K) ** 2 * norm(R)
 
@@ -316,7 +325,7 @@ def _care_terms(A, B, Q, R, X):
     K = solve_triangular(L.T, V, lower=False)
     XA = X @ A
     residual = symmetrize(Q + XA + XA.T - V.T @ V)
-    norm = jnp.linalg.norm
+    norm = _frobenius
     Ac = A - B @ K
     scale = norm(Q) + 2 * norm(Ac) * norm(X)
     floor = scale + 2 * norm(A) * norm(X) + norm(V) ** 2 + norm(_rounded_R_effect(L, K))
@@ -524,9 +533,10 @@ def _solution(A, B, Q, R, X, converged, *, discrete: bool) -> RiccatiSolution:
     # K is differentiable through X; the status carries no gradient
     Ac, residual, scale, floor = jax.lax.stop_gradient((Ac, residual, scale, floor))
     eps = jnp.finfo(X.dtype).eps
-    relative = jnp.linalg.norm(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
-    # the residual certifies X to sqrt(eps) only where its own rounding level is below that
-    uncertified = eps * floor > jnp.sqrt(eps) * scale
+    relative = _frobenius(residual) / jnp.maximum(scale, jnp.finfo(X.dtype).tiny)
+    # the residual certifies X to sqrt(eps) only where its own rounding level is below that,
+    # and where the sizes it is measured by are finite
+    uncertified = ~(eps * floor <= jnp.sqrt(eps) * scale) | ~jnp.isfinite(floor)
     if discrete:
         margin = -_log_spectral_radius(Ac)
     else:
@@ -606,9 +616,12 @@ def _check_modes(A, B, Q, discrete, wording, tol):
     """PBH tests: every mode of A outside or on the stability boundary (|lambda| >= 1, resp.
     Re lambda >= 0) must be controllable through B, and every mode on it observable through Q.
     ``tol`` (relative) is the boundary's width and the rank tolerance: 1e-9, or 100 eps of the
-    arguments' dtype (float32 data put a mode on the unit circle only to within its rounding)."""
+    arguments' dtype (float32 data put a mode on the unit circle only to within its rounding),
+    relative to the norms of the matrices each test stacks: with Q's in the controllability
+    test's, a large Q (1e12 in float64, 1e6 in float32) made (A, B) = (2, 1) "not
+    stabilisable"."""
     n = A.shape[0]
-    scale = max(1.0, np.linalg.norm(A, 2), np.linalg.norm(B, 2), np.linalg.norm(Q, 2))
+    size = lambda *matrices: max(1.0, *(np.linalg.norm(M, 2) for M in matrices))
     where = "|lambda| >= 1" if discrete else "Re lambda >= 0"
     boundary = "the unit circle" if discrete else "the imaginary axis"
     for lam in np.linalg.eigvals(A):
@@ -616,12 +629,12 @@ def _check_modes(A, B, Q, discrete, wording, tol):
         if distance < -tol:
             continue
         shifted = A - lam * np.eye(n)
-        if np.linalg.svd(np.hstack([shifted, B]), compute_uv=False)[-1] <= tol * scale:
+        if np.linalg.svd(np.hstack([shifted, B]), compute_uv=False)[-1] <= tol * size(A, B):
             raise ValueError(wording["unstabilisable"].format(lam=f"{lam:.6g}", where=where))
         on_boundary = distance <= tol
         if (
             on_boundary
-            and np.linalg.svd(np.vstack([shifted, Q]), compute_uv=False)[-1] <= tol * scale
+            and np.linalg.svd(np.vstack([shifted, Q]), compute_uv=False)[-1] <= tol * size(A, Q)
         ):
             raise ValueError(wording["boundary"].format(lam=f"{lam:.6g}", boundary=boundary))
 

@@ -417,6 +417,46 @@ def test_filter_form_names_F_and_H():
         solve_filter_care(np.ones((2, 3)), np.ones((1, 3)), np.eye(2), np.eye(1))
 
 
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_a_large_q_does_not_make_a_controllable_pair_uncontrollable(dtype):
+    """The eager PBH check measured controllability against |Q| too: Q = 1e12 (float64) or 1e6
+    (float32) made (A, B) = (2, 1) "not stabilisable", a ValueError for a problem scipy solves."""
+    f = lambda v: jnp.asarray([[v]], dtype)
+    for q in (1e6, 1e12, 1e18):
+        for solve, scipy_solve, a in ((solve_dare, sl.solve_discrete_are, 2.0),
+                                      (solve_care, sl.solve_continuous_are, 1.0)):  # fmt: skip
+            solution = solve(f(a), f(1.0), f(q), f(1.0))
+            expected = scipy_solve(*(np.asarray([[v]]) for v in (a, 1.0, q, 1.0)))
+            assert int(solution.status) == 0
+            np.testing.assert_allclose(solution.X, expected, rtol=100 * jnp.finfo(dtype).eps)
+
+
+def test_float32_certifies_a_solution_whose_frobenius_norm_overflows():
+    """A float32 DARE whose balanced X reaches 7.6e21: jnp.linalg.norm squares the entries and
+    overflowed, so the status check's scale was infinite, the relative residual exactly 0 and
+    the INACCURATE test compared inf with inf (found by a random search; X was right)."""
+    A = [
+        [0.17377452552318573, 0.00022909084509592503, -807.7630615234375],
+        [309.0133056640625, -0.02422318607568741, -4915501.0],
+        [-1.318207409894967e-06, -3.791335956293551e-08, -0.6813963651657104],
+    ]
+    B = [[0.80052250623703], [-7.798365550115705e-05], [8998.1875]]
+    Q = [
+        [2.370443820953369, -2859.72216796875, 1.3726601537200622e-05],
+        [-2859.72216796875, 19723352.0, -0.06218867376446724],
+        [1.3726601537200622e-05, -0.06218867376446724, 1.958860806894336e-08],
+    ]
+    R = [[0.14833049476146698]]  # fmt: skip
+    single = solve_dare(*(jnp.asarray(v, jnp.float32) for v in (A, B, Q, R)))
+    with enable_x64(True):
+        double = solve_dare(*(jnp.asarray(np.float32(v), jnp.float64) for v in (A, B, Q, R)))
+        assert int(double.status) == 0
+        X = np.asarray(double.X)
+    assert int(single.status) == 0
+    assert 0 < float(single.residual) < np.sqrt(np.finfo(np.float32).eps)
+    np.testing.assert_allclose(single.X, X, rtol=1e-4, atol=1e-4 * np.abs(X).max())
+
+
 def test_stable_modes_need_neither_control_nor_observation():
     with enable_x64(True):
         A, B, Q, R = np.diag([0.5, -0.3]), np.zeros((2, 1)), np.zeros((2, 2)), np.eye(1)
