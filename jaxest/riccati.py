@@ -629,13 +629,11 @@ def _check_modes(A, B, Q, discrete, wording, tol):
         if distance < -tol:
             continue
         shifted = A - lam * np.eye(n)
-        if np.linalg.svd(np.hstack([shifted, B]), compute_uv=False)[-1] <= tol * size(A, B):
+        smallest = lambda M: np.linalg.svd(M, compute_uv=False)[-1]
+        if smallest(np.hstack([shifted, B])) <= tol * size(A, B):
             raise ValueError(wording["unstabilisable"].format(lam=f"{lam:.6g}", where=where))
         on_boundary = distance <= tol
-        if (
-            on_boundary
-            and np.linalg.svd(np.vstack([shifted, Q]), compute_uv=False)[-1] <= tol * size(A, Q)
-        ):
+        if on_boundary and smallest(np.vstack([shifted, Q])) <= tol * size(A, Q):
             raise ValueError(wording["boundary"].format(lam=f"{lam:.6g}", boundary=boundary))
 
 
