@@ -246,12 +246,17 @@ class Simulation(eqx.Module):
 
 
 def gaussian_noise(key, cov):
-    """Default noise sampler: one draw of N(0, cov) for a positive semidefinite cov: chol(cov) z,
-    or, where cov is singular and has no Cholesky factor (a noise that drives some states
-    only, Q = 0), U diag(D) z from its symmetric eigendecomposition, which used to give NaN.
-    The draws of a positive definite cov are unchanged; an indefinite one gives NaN
-    (:func:`~jaxest.linalg.factor_psd_or_nan`)."""
+    """Default noise sampler: one draw of N(0, cov) for a positive semidefinite cov,
+    :func:`psd_root` (cov) z."""
     z = jax.random.normal(key, cov.shape[:1], dtype=cov.dtype)
+    return psd_root(cov) @ z
+
+
+def psd_root(cov):
+    """S with S S^T = cov for a positive semidefinite cov: chol(cov), or, where cov is singular
+    and has no Cholesky factor (a noise that drives some states only, Q = 0), U diag(D) from
+    its symmetric eigendecomposition; the Cholesky factor alone gave NaN draws. An indefinite
+    cov gives NaN (:func:`~jaxest.linalg.factor_psd_or_nan`)."""
     chol = jnp.linalg.cholesky(cov)
 
     def semidefinite_root():
@@ -259,8 +264,7 @@ def gaussian_noise(key, cov):
         U, D = factor_psd_or_nan(after(cov, chol))
         return U * D
 
-    root = jax.lax.cond(jnp.all(jnp.isfinite(chol)), lambda: chol, semidefinite_root)
-    return root @ z
+    return jax.lax.cond(jnp.all(jnp.isfinite(chol)), lambda: chol, semidefinite_root)
 
 
 def check_inputs_used(model, inputs):

@@ -30,6 +30,7 @@ from jaxest.network.design import (
     instantaneous_cost,
     optimal_free_gain,
     optimal_gain,
+    pseudo_inverse_and_left_null_rows,
     unheard_couplings,
 )
 from jaxest.systems.chain import initial_prior, mass_chain
@@ -176,6 +177,82 @@ def test_existence_error_names_the_node():
         check_existence(no_sensors, CommunicationStructure.full(4))
         for name in ("none", "chain", "full"):
             check_existence(mass_chain(4), getattr(CommunicationStructure, name)(4))
+
+
+def test_design_names_a_bad_cov0_or_S_and_differentiates_in_L_C_and_H2():
+    """A non-symmetric or indefinite cov0 gave other costs silently, a joint (Nn, Nn) cov0 an
+    unpacking error; the gradient in C or H2 raised a TracerArrayConversionError from the
+    existence check, which read them as NumPy arrays (now skipped where they are traced), and
+    in L, C or H2 it was NaN wherever H_i2 E_i is rank-deficient, as here (the SVD's derivative
+    at a zero singular value; now lemma 2's own, :func:`pseudo_inverse_and_left_null_rows`)."""
+    with enable_x64():
+        system = random_system(np.random.default_rng(3))  # node 0 does not hear node 2
+        structure, ts = CommunicationStructure.chain(3), jnp.linspace(0.0, 0.5, 3)
+        eye = jnp.stack([jnp.eye(2)] * 3)
+        for cov0, match in (
+            (eye.at[0, 0, 1].set(0.5), "cov0: must be symmetric"),
+            (eye.at[1].set(jnp.diag(jnp.asarray([1.0, -1.0]))), "cov0: must be positive semi"),
+            (jnp.eye(6), r"cov0: expected a block per node, shape \(3, 2, 2\)"),
+        ):
+            with pytest.raises(ValueError, match=f"^{match}"):
+                design(system, structure, cov0, ts)
+        with pytest.raises(ValueError, match="^S: expected a block per node"):
+            design(system, structure, eye, ts, S=jnp.eye(2))
+
+        def cost(scale, field):
+            scaled = eqx.tree_at(
+                lambda s: getattr(s, field), system, scale * getattr(system, field)
+            )
+            return design(scaled, structure, eye, ts).J[-1]
+
+        for field in ("L", "C", "H2"):
+            h = 1e-6
+            central = (cost(1 + h, field) - cost(1 - h, field)) / (2 * h)
+            np.testing.assert_allclose(jax.grad(cost)(1.0, field), central, rtol=1e-6)
+
+
+@pytest.mark.parametrize("shape, rank", [((3, 4), 2), ((3, 5), 0), ((2, 6), 1)])
+def test_pseudo_inverse_and_null_space_derivatives_at_constant_rank(shape, rank):
+    """Against central differences along a curve of constant rank, (I + t X) M (I + t Y), whose
+    tangent is dM = X M + M Y (along M + t dM the rank grows: a rank-0 M stays 0 either way)."""
+    rng = np.random.default_rng(rank)
+    with enable_x64():
+        q, w = shape
+        M = jnp.asarray(rng.normal(size=(q, rank)) @ rng.normal(size=(rank, w)))
+        X, Y = jnp.asarray(rng.normal(size=(q, q))), jnp.asarray(rng.normal(size=(w, w)))
+        curve = lambda t: (jnp.eye(q) + t * X) @ M @ (jnp.eye(w) + t * Y)  # rank kept
+        dM = X @ M + M @ Y
+        projector = lambda phi: phi.T @ phi
+        outputs = lambda t: (lambda p, phi, _: (p, projector(phi)))(
+            *pseudo_inverse_and_left_null_rows(curve(t))
+        )
+        _, (d_pinv, d_phi, d_mask) = jax.jvp(pseudo_inverse_and_left_null_rows, (M,), (dM,))
+        _, phi, _ = pseudo_inverse_and_left_null_rows(M)
+        h = 1e-6
+        plus, minus = outputs(h), outputs(-h)
+        np.testing.assert_allclose(d_pinv, (plus[0] - minus[0]) / (2 * h), atol=1e-7)
+        np.testing.assert_allclose(
+            d_phi.T @ phi + phi.T @ d_phi, (plus[1] - minus[1]) / (2 * h), atol=1e-7
+        )
+        assert not np.any(d_mask)
+
+
+def test_simulation_draws_a_singular_noise_or_prior():
+    """LargeScaleSystem takes a positive semidefinite Q (a node padded to a common size, a
+    noise-free node), but the simulation factored Q and cov0 by Cholesky: NaN draws. Positive
+    definite ones draw as before."""
+    with enable_x64():
+        system = random_system(np.random.default_rng(0), N=2)
+        mean0, eye, key = jnp.zeros((2, 2)), jnp.stack([jnp.eye(2)] * 2), jax.random.key(0)
+        states, ys = simulate_network(system, mean0, eye, 0.01, 5, key)
+        normal = jax.random.normal(jax.random.split(key)[0], (2, 2), jnp.float64)
+        np.testing.assert_array_equal(states[0], normal)  # chol(I) z: the draw it always was
+        singular = jnp.diag(jnp.asarray([1.0, 0.0]))
+        for Q, cov0 in ((system.Q.at[1].set(singular), eye), (system.Q, eye.at[0].set(singular))):
+            states, ys = simulate_network(eqx.tree_at(lambda s: s.Q, system, Q), mean0, cov0,
+                                          0.01, 5, key)  # fmt: skip
+            assert np.all(np.isfinite(states)) and np.all(np.isfinite(ys))
+        assert states[0, 0, 1] == 0  # a known component stays at its mean
 
 
 @pytest.mark.parametrize("switching", [False, True])

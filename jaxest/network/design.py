@@ -31,8 +31,10 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
+from jaxest._checks import check_matrix
 from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.network.structure import (
     CommunicationStructure,
@@ -55,25 +57,62 @@ class GainConstraint(eqx.Module):
 
 
 def gain_constraint(system: LargeScaleSystem, structure: CommunicationStructure) -> GainConstraint:
-    """Lemma 2 by SVD for a constant system and structure (works under jit/vmap)."""
+    """Lemma 2 by SVD for a constant system and structure (works under jit/vmap/grad)."""
     E = unheard_couplings(system, structure)  # (N, h, Nn)
     M = system.H2 @ E  # (N, q, Nn)
     q, width = M.shape[-2:]
     if width < q:  # pad so that the thin SVD still returns a complete U (q x q)
         M = jnp.concatenate([M, jnp.zeros((*M.shape[:-1], q - width), M.dtype)], axis=-1)
         E = jnp.concatenate([E, jnp.zeros((*E.shape[:-1], q - width), E.dtype)], axis=-1)
-    U, s, Vt = jnp.linalg.svd(M, full_matrices=False)  # U (N, q, q), s (N, q), Vt (N, q, Nn)
-    eps = jnp.finfo(M.dtype).eps
-    in_range = s > max(M.shape[-2:]) * eps * s[:, :1]
-    s_inv = jnp.where(in_range, 1.0 / jnp.where(in_range, s, 1.0), 0.0)
-    pinv = jnp.einsum("iku,iu,iqu->ikq", jnp.swapaxes(Vt, -1, -2), s_inv, U)  # (N, Nn, q)
+    pinv, phi, null_mask = pseudo_inverse_and_left_null_rows(M)
     CE = system.C @ E
     particular = CE @ pinv
-    null_mask = (~in_range).astype(M.dtype)
-    phi = null_mask[:, :, None] * jnp.swapaxes(U, -1, -2)
+    # a diagnostic, not differentiated (the norm's derivative is NaN where eq 15 holds exactly)
+    CE, gap = jax.lax.stop_gradient((CE, CE - particular @ M))
     scale = jnp.maximum(jnp.linalg.norm(CE, axis=(-2, -1)), jnp.finfo(M.dtype).tiny)
-    residual = jnp.linalg.norm(CE - particular @ M, axis=(-2, -1)) / scale
+    residual = jnp.linalg.norm(gap, axis=(-2, -1)) / scale
     return GainConstraint(particular, phi, null_mask, residual)
+
+
+def _transpose(X):
+    return jnp.swapaxes(X, -1, -2)
+
+
+@jax.custom_jvp
+def pseudo_inverse_and_left_null_rows(M):
+    """For M (..., q, w), w >= q, by its SVD: the pseudo-inverse M^+ (..., w, q), a q x q matrix
+    phi whose rows are an orthonormal basis of the left null space of M (its other rows zero),
+    and the mask of those rows. The rank counts singular values above max(q, w) eps s_max.
+
+    Derivative at constant rank (the SVD's own is NaN at the zero or repeated singular values
+    a rank-deficient M has, so the designed gains' gradient was NaN wherever the constraint
+    bites): d M^+ = -M^+ dM M^+ + M^+ M^+T dM^T (I - M M^+) + (I - M^+ M) dM^T M^+T M^+
+    (Golub & Pereyra 1973, eq 4.12), and d phi = phi dP for the projector P = I - M M^+ =
+    phi^T phi, dP = -(P dM M^+ + (P dM M^+)^T): the basis turns only as its span does, and
+    every use of phi (G = B + G~ phi with G~ optimal) depends on the span alone."""
+    U, s, Vt = jnp.linalg.svd(M, full_matrices=False)  # U (..., q, q), s (..., q)
+    eps = jnp.finfo(M.dtype).eps
+    in_range = s > max(M.shape[-2:]) * eps * s[..., :1]
+    s_inv = jnp.where(in_range, 1.0 / jnp.where(in_range, s, 1.0), 0.0)
+    pinv = jnp.einsum("...ku,...u,...qu->...kq", _transpose(Vt), s_inv, U)
+    null_mask = (~in_range).astype(M.dtype)
+    return pinv, null_mask[..., :, None] * _transpose(U), null_mask
+
+
+@pseudo_inverse_and_left_null_rows.defjvp
+def _pseudo_inverse_and_left_null_rows_jvp(primals, tangents):
+    (M,), (dM,) = primals, tangents
+    pinv, phi, null_mask = pseudo_inverse_and_left_null_rows(M)
+    left_null = _transpose(phi) @ phi  # I - M M^+
+    right_null = jnp.eye(M.shape[-1], dtype=M.dtype) - pinv @ M  # I - M^+ M
+    d_pinv = (
+        -pinv @ dM @ pinv
+        + pinv @ _transpose(pinv) @ _transpose(dM) @ left_null
+        + right_null @ _transpose(dM) @ _transpose(pinv) @ pinv
+    )
+    moved = left_null @ dM @ pinv
+    d_phi = -phi @ (moved + _transpose(moved))
+    return (pinv, phi, null_mask), (d_pinv, d_phi, jnp.zeros_like(null_mask))
 
 
 def closed_loop_blocks(system: LargeScaleSystem, structure: CommunicationStructure):
@@ -236,8 +275,17 @@ def design(
     """Integrate eqs 28-31 with the gains of step 4 (diffrax Tsit5, adaptive) from t = ts[0]
     with P(0) = blkdiag(cov0) (eqs 29, 31); return gains and costs at ``ts``.
 
-    Raises ``ValueError`` naming the node if the structure admits no filter (lemma 1).
+    Raises ``ValueError`` naming the node if the structure admits no filter (lemma 1), and
+    naming ``cov0`` or ``S`` unless each is N positive semidefinite n x n blocks (a
+    non-symmetric or indefinite cov0 gave other costs silently).
     """
+    blocks = (system.num_nodes, system.state_dim, system.state_dim)
+    for name, value in (("cov0", cov0), ("S", S)):
+        if value is not None:
+            if np.ndim(value) != 3:
+                got = np.shape(value)
+                raise ValueError(f"{name}: expected a block per node, shape {blocks}; got {got}")
+            check_matrix(name, value, blocks, psd=True, ndim=3)
     check_existence(system, structure)
     return _design(
         system, structure, cov0, jnp.asarray(ts, system.A.dtype), _weights(system, S), max_steps

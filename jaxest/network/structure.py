@@ -23,6 +23,7 @@ from jaxtyping import Array, Bool, Float
 
 from jaxest._checks import check_matrix, is_concrete
 from jaxest.linalg import working_precision_by_default
+from jaxest.models import psd_root
 
 
 def piece_index(switch_times: tuple[float, ...], t) -> Array:
@@ -222,8 +223,10 @@ def existence_ranks(system: LargeScaleSystem, structure: CommunicationStructure)
 
 def check_existence(system: LargeScaleSystem, structure: CommunicationStructure) -> None:
     """Raise ``ValueError`` naming the first node for which lemma 1 fails, on every piece of a
-    piecewise-constant system/structure. Does nothing for traced (non-concrete) arguments."""
-    if not (is_concrete(system.L) and is_concrete(structure.hears)):
+    piecewise-constant system/structure. Does nothing where an array it reads is traced (not
+    concrete: under ``jax.grad`` with respect to C or H2 it raised a
+    ``TracerArrayConversionError``)."""
+    if not all(is_concrete(a) for a in (system.L, system.H2, system.C, structure.hears)):
         return
     for t in sorted(set(system.switch_times) | set(structure.switch_times)):
         sys_t, struct_t = system.at(t), structure.at(t)
@@ -252,7 +255,7 @@ def simulate_step(system: LargeScaleSystem, x: Float[Array, "N n"], t, dt: float
     kw, kv = jax.random.split(key)
     A, H, _, _ = sys.centralized()
     noise = lambda k, cov: jnp.einsum(
-        "iab,ib->ia", jnp.linalg.cholesky(cov), jax.random.normal(k, cov.shape[:2], x.dtype)
+        "iab,ib->ia", jax.vmap(psd_root)(cov), jax.random.normal(k, cov.shape[:2], x.dtype)
     )
     w, v = noise(kw, sys.Q), noise(kv, sys.R)
     y = (H @ x.reshape(-1)).reshape(N, -1) + v / jnp.sqrt(dt)
@@ -261,9 +264,9 @@ def simulate_step(system: LargeScaleSystem, x: Float[Array, "N n"], t, dt: float
 
 
 def draw_initial_state(mean0: Float[Array, "N n"], cov0: Float[Array, "N n n"], key):
-    """x(0) ~ N(mean0, blkdiag(cov0))."""
+    """x(0) ~ N(mean0, blkdiag(cov0)) (cov0 positive semidefinite: :func:`psd_root`)."""
     normal = jax.random.normal(key, mean0.shape, mean0.dtype)
-    return mean0 + jnp.einsum("iab,ib->ia", jnp.linalg.cholesky(cov0), normal)
+    return mean0 + jnp.einsum("iab,ib->ia", jax.vmap(psd_root)(cov0), normal)
 
 
 @working_precision_by_default
