@@ -18,6 +18,7 @@ from jaxest import Gaussian, run
 from jaxest.network import (
     CommunicationStructure,
     LargeScaleSystem,
+    NetworkDesignStatus,
     NetworkFilter,
     check_existence,
     design,
@@ -177,6 +178,12 @@ def test_existence_error_names_the_node():
         check_existence(no_sensors, CommunicationStructure.full(4))
         for name in ("none", "chain", "full"):
             check_existence(mass_chain(4), getattr(CommunicationStructure, name)(4))
+        # under jit nothing can raise: the status says it (the costs were finite, status-less)
+        no_filter = int(NetworkDesignStatus.NO_FILTER)
+        ts, none = jnp.linspace(0, 1, 3), CommunicationStructure.none(4)
+        assert jax.jit(steady_state)(no_sensors, none, cov0).status == no_filter
+        assert jax.jit(design)(no_sensors, none, cov0, ts).status == no_filter
+        assert jax.jit(design)(mass_chain(4), none, cov0, ts).status == 0
 
 
 def test_design_names_a_bad_cov0_or_S_and_differentiates_in_L_C_and_H2():

@@ -8,6 +8,7 @@
 
 from jaxest.network.design import (
     NetworkDesign,
+    NetworkDesignStatus,
     SteadyState,
     centralized_steady_state,
     design,
@@ -25,6 +26,7 @@ __all__ = [
     "CommunicationStructure",
     "LargeScaleSystem",
     "NetworkDesign",
+    "NetworkDesignStatus",
     "NetworkFilter",
     "NetworkResult",
     "SteadyState",

@@ -32,9 +32,10 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_matrix
+from jaxest._status import Status, finite_status, status_where
 from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.network.structure import (
     CommunicationStructure,
@@ -234,14 +235,37 @@ def _tolerances(dtype):
     return (1e-10, 1e-12) if jnp.finfo(dtype).bits == 64 else (1e-5, 1e-7)
 
 
+#: the flags of a design (:func:`design`, :func:`steady_state`): the core's and NO_FILTER
+NetworkDesignStatus = Status.extend(
+    "NetworkDesignStatus",
+    NO_FILTER=(
+        4,
+        "a node admits no filter of the communication structure (lemma 1, eq 15): it neither "
+        "hears a node it is coupled to nor measures that coupling, and the gains and costs "
+        "are not those of a filter; call design outside jit to have the node named",
+    ),
+)
+
+
+def design_status(pieces, *arrays) -> Int[Array, ""]:
+    """NONFINITE where ``arrays`` are, NO_FILTER where lemma 2's constraint residual of a node
+    on some piece exceeds sqrt(eps) (it is rounding, about eps, where lemma 1 holds, and of
+    order one where it fails): what :func:`check_existence` says eagerly, under ``jit``."""
+    residual = pieces.constraint.residual  # (pieces, N)
+    no_filter = jnp.any(residual > jnp.sqrt(jnp.finfo(residual.dtype).eps))
+    return finite_status(*arrays) | status_where(no_filter, NetworkDesignStatus.NO_FILTER)
+
+
 class NetworkDesign(eqx.Module):
     """The designed filter on a time grid: ``ts`` (K,), gains G_i(t_k) (K, N, n, q), node costs
-    tr(S_i P_i(t_k)) (K, N) and the joint error covariance at the last time (Nn, Nn)."""
+    tr(S_i P_i(t_k)) (K, N), the joint error covariance at the last time (Nn, Nn) and the
+    status (:data:`NetworkDesignStatus`)."""
 
     ts: Float[Array, " K"]
     gains: Float[Array, "K N n q"]
     costs: Float[Array, "K N"]
     final_cov: Float[Array, "Nn Nn"]
+    status: Int[Array, ""]
 
     @property
     def J(self) -> Float[Array, " K"]:
@@ -311,18 +335,20 @@ def _design(system, structure, cov0, ts, S, max_steps):
         max_steps=max_steps,
     )
     gains, costs, covs = sol.ys
-    return NetworkDesign(ts, gains, costs, covs[-1])
+    return NetworkDesign(ts, gains, costs, covs[-1], design_status(pieces, gains, costs))
 
 
 class SteadyState(eqx.Module):
     """Steady state of eqs 28-31 for a constant system: joint covariance P, gains G_i, node costs
-    tr(S_i P_i), the time it took to settle and the norm of P' there."""
+    tr(S_i P_i), the time it took to settle, the norm of P' there and the status
+    (:data:`NetworkDesignStatus`)."""
 
     cov: Float[Array, "Nn Nn"]
     gains: Float[Array, "N n q"]
     costs: Float[Array, " N"]
     settle_time: Float[Array, ""]
     rate_norm: Float[Array, ""]
+    status: Int[Array, ""]
 
     @property
     def J(self):
@@ -365,13 +391,10 @@ def _steady_state(system, structure, cov0, S, horizon, max_steps):
     )
     P = sol.ys[-1]
     sys, cons, _, Hbar = pieces.at(sol.ts[-1])
-    return SteadyState(
-        P,
-        optimal_gain(sys, cons, Hbar, P),
-        node_costs(P, S),
-        sol.ts[-1],
-        jnp.linalg.norm(_vector_field(sol.ts[-1], P, pieces)),
-    )
+    gains, costs = optimal_gain(sys, cons, Hbar, P), node_costs(P, S)
+    rate_norm = jnp.linalg.norm(_vector_field(sol.ts[-1], P, pieces))
+    status = design_status(pieces, gains, costs)
+    return SteadyState(P, gains, costs, sol.ts[-1], rate_norm, status)
 
 
 @eqx.filter_jit
