@@ -205,6 +205,8 @@ def test_design_names_a_bad_cov0_or_S_and_differentiates_in_L_C_and_H2():
                 design(system, structure, cov0, ts)
         with pytest.raises(ValueError, match="^S: expected a block per node"):
             design(system, structure, eye, ts, S=jnp.eye(2))
+        with pytest.raises(ValueError, match="^ts: must be increasing"):  # an error in diffrax
+            design(system, structure, eye, ts[::-1])
 
         def cost(scale, field):
             scaled = eqx.tree_at(
@@ -408,7 +410,8 @@ def test_filter_step_against_explicit_form_and_transforms(chain3, dtype):
 
 def test_filter_names_the_argument_that_does_not_fit(chain3):
     """Measurements of the wrong width broadcast through eq 9 with status OK, and gains, a
-    structure or a prior of the wrong size failed inside the trace without naming themselves."""
+    structure or a prior of the wrong size or precision (an integer mean, float32 against
+    float64 gains or measurements) failed inside the trace without naming themselves."""
     system, structure, mean0, cov0, des = chain3
     _, ys = simulate_network(system, mean0, cov0, DT, 20, jax.random.key(0))
     prior = Gaussian(mean0, cov0)
@@ -419,6 +422,9 @@ def test_filter_names_the_argument_that_does_not_fit(chain3):
         (NetworkFilter(CommunicationStructure.chain(2), gains, DT), ys, prior, r"^structure: has 2"),
         (NetworkFilter(structure, gains, DT), ys, Gaussian(mean0[:, :1], cov0), r"^prior.mean:"),
         (NetworkFilter(structure, gains, -DT), ys, prior, r"^dt: must be positive"),
+        (NetworkFilter(structure, gains, DT), ys, Gaussian(mean0.astype(int), cov0), "^prior.mean: must be real"),
+        (NetworkFilter(structure, gains, DT), ys, Gaussian(mean0.astype(jnp.float32), cov0),
+         r"^prior.mean: is float32, narrower .*gains float64"),
     ]  # fmt: skip
     for filt, measurements, start, message in cases:
         with pytest.raises(ValueError, match=message):

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_matrix
+from jaxest._checks import check_matrix, is_concrete
 from jaxest._status import Status, finite_status, status_where
 from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.network.structure import (
@@ -310,6 +310,10 @@ def design(
                 got = np.shape(value)
                 raise ValueError(f"{name}: expected a block per node, shape {blocks}; got {got}")
             check_matrix(name, value, blocks, psd=True, ndim=3)
+    if np.ndim(ts) != 1 or np.size(ts) == 0:
+        raise ValueError(f"ts: expected a vector of times, got shape {np.shape(ts)}")
+    if is_concrete(ts) and np.any(np.diff(np.asarray(ts)) < 0):  # an error from inside diffrax
+        raise ValueError("ts: must be increasing (the times the design is saved at)")
     check_existence(system, structure)
     return _design(
         system, structure, cov0, jnp.asarray(ts, system.A.dtype), _weights(system, S), max_steps
