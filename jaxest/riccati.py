@@ -51,11 +51,13 @@ nearly singular R meets a small X; and in the CARE what rounding R moves it by t
 Cholesky factor, :func:`_rounded_R_effect`, which the residual, evaluated through the same
 factor as the solution, cannot see); or when Newton did not converge.
 
-Gradients (reverse mode) come from implicit differentiation: the derivative dX of either
-equation solves a Stein (discrete) or Lyapunov (continuous) equation in A_c, so the cotangent
-needs one adjoint solve, A_c Y A_c^T - Y + Xbar = 0 resp. A_c Y + Y A_c^T + Xbar = 0, after
-which Qbar = Y, Rbar = K Y K^T, Abar = 2 X A_c Y (discrete) or 2 X Y (continuous) and
-Bbar = -Abar K^T. The status, residual and margin carry no gradient.
+Derivatives, forward and reverse mode, come from implicit differentiation: the derivative dX
+of either equation solves a Stein (discrete) or Lyapunov (continuous) equation in A_c, a
+``jax.lax.custom_linear_solve`` whose transpose is the adjoint solve, A_c Y A_c^T - Y + Xbar =
+0 resp. A_c Y + Y A_c^T + Xbar = 0, after which Qbar = Y, Rbar = K Y K^T, Abar = 2 X A_c Y
+(discrete) or 2 X Y (continuous) and Bbar = -Abar K^T. (A ``custom_vjp`` gave reverse mode
+only: ``jax.jvp``, ``jacfwd`` and ``linearize`` raised a TypeError, for the steady-state Kalman
+filter too.) The status, residual and margin carry no derivative.
 """
 
 from __future__ import annotations
@@ -237,16 +239,6 @@ def _lyapunov(Ac, C):
     T = jax.scipy.linalg.lu_solve(shifted, Ac + g * eye)
     M = jax.scipy.linalg.lu_solve(shifted, C)
     return _stein(T, 2 * g * jax.scipy.linalg.lu_solve(shifted, M.T).T)
-
-
-@jax.jit
-def _solve_stein(T, C):
-    return _stein(T, C)[0]
-
-
-@jax.jit
-def _solve_lyapunov(Ac, C):
-    return _lyapunov(Ac, C)[0]
 
 
 def _log_spectral_radius(T):
@@ -462,52 +454,59 @@ def _care_solve(A, B, Q, R, G):
     return _newton(step, _care_start(A, G, Q))
 
 
-# --------------------------------------------------------------------------- implicit gradients
-@jax.custom_vjp
+# --------------------------------------------------------------------------- implicit derivatives
+@jax.custom_jvp
 def _dare(A, B, Q, R, G):
     return _dare_solve(A, B, Q, R, G)
 
 
-def _dare_fwd(A, B, Q, R, G):
-    X, converged = _dare_solve(A, B, Q, R, G)
-    return (X, converged), (A, B, R, X)
-
-
+@_dare.defjvp
 @working_precision_by_default
-def _dare_bwd(residuals, cotangents):
-    A, B, R, X = residuals
-    Xbar, _ = cotangents
+def _dare_jvp(primals, tangents):
+    """dX = A_c^T dX A_c + E: the Stein equation of the module docstring, with
+    E = dQ + dA_K^T X A_c + A_c^T X dA_K + K^T dR K and dA_K = dA - dB K (K is optimal, so its
+    own change drops out). Solved as a ``custom_linear_solve``, whose transpose (the adjoint
+    Stein equation, ``_stein(A_c, .)``) gives reverse mode."""
+    A, B, Q, R, G = primals
+    dA, dB, dQ, dR, _ = tangents  # G = B R^-1 B^T only starts the iteration
+    X, converged = _dare(A, B, Q, R, G)
     K = jnp.linalg.solve(R + B.T @ X @ B, B.T @ X @ A)
     Ac = A - B @ K
-    Y = _solve_stein(Ac, symmetrize(Xbar))
-    Abar = 2 * X @ Ac @ Y
-    return Abar, -Abar @ K.T, Y, K @ Y @ K.T, None  # G = B R^-1 B^T only starts the iteration
+    XdA = X @ (dA - dB @ K)
+    E = symmetrize(dQ + Ac.T @ XdA + XdA.T @ Ac + K.T @ dR @ K)
+    dX = jax.lax.custom_linear_solve(
+        lambda N: N - Ac.T @ N @ Ac,
+        E,
+        solve=lambda _, b: _stein(Ac.T, b)[0],
+        transpose_solve=lambda _, b: _stein(Ac, b)[0],
+    )
+    return (X, converged), (dX, np.zeros(np.shape(converged), jax.dtypes.float0))
 
 
-_dare.defvjp(_dare_fwd, _dare_bwd)
-
-
-@jax.custom_vjp
+@jax.custom_jvp
 def _care(A, B, Q, R, G):
     return _care_solve(A, B, Q, R, G)
 
 
-def _care_fwd(A, B, Q, R, G):
-    X, converged = _care_solve(A, B, Q, R, G)
-    return (X, converged), (A, B, R, X)
-
-
+@_care.defjvp
 @working_precision_by_default
-def _care_bwd(residuals, cotangents):
-    A, B, R, X = residuals
-    Xbar, _ = cotangents
+def _care_jvp(primals, tangents):
+    """A_c^T dX + dX A_c + E = 0 with E = dQ + dA_K^T X + X dA_K + K^T dR K, dA_K = dA - dB K,
+    as for :func:`_dare_jvp`; the transpose solves A_c Y + Y A_c^T + Xbar = 0."""
+    A, B, Q, R, G = primals
+    dA, dB, dQ, dR, _ = tangents
+    X, converged = _care(A, B, Q, R, G)
     K = cho_solve_lower(cholesky(R), B.T @ X)
-    Y = _solve_lyapunov(A - B @ K, symmetrize(Xbar))
-    Abar = 2 * X @ Y
-    return Abar, -Abar @ K.T, Y, K @ Y @ K.T, None  # G = B R^-1 B^T only starts the iteration
-
-
-_care.defvjp(_care_fwd, _care_bwd)
+    Ac = A - B @ K
+    XdA = X @ (dA - dB @ K)
+    E = symmetrize(dQ + XdA + XdA.T + K.T @ dR @ K)
+    dX = jax.lax.custom_linear_solve(
+        lambda N: -(Ac.T @ N + N @ Ac),
+        E,
+        solve=lambda _, b: _lyapunov(Ac.T, b)[0],
+        transpose_solve=lambda _, b: _lyapunov(Ac, b)[0],
+    )
+    return (X, converged), (dX, np.zeros(np.shape(converged), jax.dtypes.float0))
 
 
 # --------------------------------------------------------------------------- status

@@ -128,7 +128,8 @@ def states_in_units(scales, discrete):
 @pytest.mark.parametrize("solve", [solve_dare, solve_care], ids=["dare", "care"])
 def test_gradient_matches_finite_differences(solve, units):
     """Through the implicit derivative, and through the balancing, which moves the states of
-    the second problem by up to 2^10 (each argument perturbed relative to its entries)."""
+    the second problem by up to 2^10 (each argument perturbed relative to its entries); in
+    reverse mode and in forward mode (``jax.jvp`` raised a TypeError on the custom_vjp)."""
     with enable_x64(True):
         if units:
             A, B, Q, R = states_in_units((1e3, 1.0, 1e-3), solve is solve_dare)
@@ -137,6 +138,7 @@ def test_gradient_matches_finite_differences(solve, units):
         weights = np.random.default_rng(9).normal(size=(3, 3))
         loss = _loss(solve, weights)
         grads = jax.jit(jax.grad(loss, argnums=(0, 1, 2, 3)))(A, B, Q, R)
+        forward = jax.jit(lambda args, tangents: jax.jvp(loss, args, tangents)[1])
         args = [A, B, Q, R]
         rng = np.random.default_rng(1)
         for i in range(4):
@@ -148,6 +150,29 @@ def test_gradient_matches_finite_differences(solve, units):
             minus = [a - h * direction if j == i else a for j, a in enumerate(args)]
             fd = (loss(*plus) - loss(*minus)) / (2 * h)
             np.testing.assert_allclose(np.sum(grads[i] * direction), fd, rtol=1e-6, atol=1e-8)
+            tangents = [direction if j == i else np.zeros_like(a) for j, a in enumerate(args)]
+            np.testing.assert_allclose(forward(args, tangents), fd, rtol=1e-6, atol=1e-8)
+
+
+def test_steady_state_filter_differentiates_in_forward_mode():
+    """Its gain comes from solve_filter_dare: jacfwd (and optimistix's least-squares solvers,
+    which linearise) raised a TypeError where the solver had only a reverse-mode rule."""
+    import jaxest as je
+
+    with enable_x64(True):
+        F, H = jnp.asarray([[1.0, 0.1], [0.0, 1.0]]), jnp.asarray([[1.0, 0.0]])
+        Q, R = jnp.asarray([[1e-4, 1e-3], [1e-3, 2e-2]]), jnp.asarray([[0.25]])
+        prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
+        ys = je.simulate(je.LinearGaussian(F, H, Q, R), prior, 50, jax.random.key(0)).y
+        loglik = lambda r: (
+            je.run(
+                je.SteadyStateKalmanFilter(), je.LinearGaussian(F, H, Q, r * R), ys, prior=prior
+            ).loglik
+        )
+        h = 1e-6
+        central = (loglik(1 + h) - loglik(1 - h)) / (2 * h)
+        np.testing.assert_allclose(jax.jit(jax.jacfwd(loglik))(1.0), central, rtol=1e-7)
+        np.testing.assert_allclose(jax.jit(jax.grad(loglik))(1.0), central, rtol=1e-7)
 
 
 def test_gradient_under_vmap_float32():
