@@ -197,8 +197,8 @@ def normalise_log_weights(log_w):
     """log W_i = log w_i - log sum_j w_j, and log sum_j w_j, with the W_i summing to one.
 
     Normalised relative to the largest log-weight: where the log-weights are huge (a
-    measurement far in a tail: -1e16 in float64, -1e5 in float32), log w_i - logsumexp(log w)
-    rounds the sum's own log(count) away, so k log-weights tied by rounding each got W = 1 (a
+    measurement far in a tail, 1e16 off in float64 or 1e5 in float32: log-weights near -1e32,
+    resp. -1e10), log w_i - logsumexp(log w) rounds the sum's own log(count) away, so k log-weights tied by rounding each got W = 1 (a
     weighted "mean" summing k particles, an ESS below one). The shift has no derivative (as in
     ``jax.nn.logsumexp``): the result does not depend on it."""
     peak = jax.lax.stop_gradient(jnp.max(log_w))

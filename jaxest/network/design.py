@@ -88,7 +88,7 @@ def pseudo_inverse_and_left_null_rows(M):
     Derivative at constant rank (the SVD's own is NaN at the zero or repeated singular values
     a rank-deficient M has, so the designed gains' gradient was NaN wherever the constraint
     bites): d M^+ = -M^+ dM M^+ + M^+ M^+T dM^T (I - M M^+) + (I - M^+ M) dM^T M^+T M^+
-    (Golub & Pereyra 1973, eq 4.12), and d phi = phi dP for the projector P = I - M M^+ =
+    (Golub & Pereyra 1973), and d phi = phi dP for the projector P = I - M M^+ =
     phi^T phi, dP = -(P dM M^+ + (P dM M^+)^T): the basis turns only as its span does, and
     every use of phi (G = B + G~ phi with G~ optimal) depends on the span alone."""
     U, s, Vt = jnp.linalg.svd(M, full_matrices=False)  # U (..., q, q), s (..., q)
