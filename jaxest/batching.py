@@ -21,7 +21,11 @@ primitives of a function that take that path.
 Custom derivative rules (``custom_jvp``, ``custom_vjp``) are evaluated by their primal function:
 differentiate inside the batched function, ``vmap_minor(jax.value_and_grad(loss))``, where the
 rules have already been applied when the jaxpr is traced. A derivative taken outside
-(``jax.grad(vmap_minor(f))``) is autodiff of the primal code.
+(``jax.grad(vmap_minor(f))``, also under ``jax.vmap``) of a function with such rules runs under
+``jax.vmap``, which keeps them: autodiff of the primal code gave NaN gradients through the SVD
+filters, whose rules exist because the SVD's own derivative is NaN. Only a derivative taken
+through a caller's ``jit`` around ``vmap_minor`` (``jax.grad(jax.jit(g))`` with ``g`` calling
+it) cannot be seen here and is still autodiff of the primal code.
 
 The returned function is ``jax.jit``-compiled, with XLA:CPU's YNNPACK fusions turned off for it
 (:data:`jaxest.xla_flags.NO_YNN_FUSION`): YNNPACK takes every fusion with 4 096 elements or more,
@@ -45,6 +49,7 @@ from jax import lax
 from jax.extend import core as jex_core
 
 from jaxest import xla_flags
+from jaxest._jaxpr import inner_jaxprs
 from jaxest.linalg import SMALL_MATMUL
 
 #: primitives that act entry by entry (operands of equal shape, or broadcast from size 1)
@@ -102,10 +107,35 @@ def vmap_minor(fn: Callable, in_axes=0) -> Callable:
 
     @functools.wraps(fn)
     def call(*args):
-        _flat_arguments(args, in_axes)  # the argument errors, before anything is traced
+        leaves, _, _ = _flat_arguments(args, in_axes)  # the argument errors, before tracing
+        if any(map(_differentiated, leaves)) and _has_custom_rules(_traced(fn, args, in_axes)):
+            return jax.vmap(fn, in_axes)(*args)  # keeps the rules (module docstring)
         return compiled(*args)
 
     return call
+
+
+def _differentiated(x) -> bool:
+    """Whether ``x`` carries a forward- or reverse-mode derivative being taken outside (a JVP or
+    linearize tracer, possibly under ``jax.vmap``'s)."""
+    while isinstance(x, jax.core.Tracer):
+        kind = type(x).__name__
+        if kind in ("JVPTracer", "LinearizeTracer"):
+            return True
+        x = getattr(x, "val", None) if kind == "BatchTracer" else None
+    return False
+
+
+def _has_custom_rules(traced: _Traced) -> bool:
+    """Whether the traced function has a ``custom_jvp`` or ``custom_vjp`` rule anywhere."""
+    pending = [traced.jaxpr.jaxpr]
+    while pending:
+        jaxpr = pending.pop()
+        for eqn in jaxpr.eqns:
+            if eqn.primitive.name in ("custom_jvp_call", "custom_vjp_call"):
+                return True
+            pending.extend(inner_jaxprs(eqn))
+    return False
 
 
 def vmap_minor_fallbacks(fn: Callable, *args, in_axes=0) -> dict[str, int]:
@@ -210,8 +240,11 @@ def _flat_arguments(args, in_axes) -> tuple[list, list[bool], int]:
 
 
 def _aval(x, shape=None) -> jax.ShapeDtypeStruct:
-    """``x``'s shape (or ``shape``) and dtype."""
-    return jax.ShapeDtypeStruct(jnp.shape(x) if shape is None else tuple(shape), jnp.result_type(x))
+    """``x``'s shape (or ``shape``), dtype and weak type (a weakly typed float32 times a float16
+    is float16 under ``jax.vmap``; dropping the weak type made it float32)."""
+    shape = jnp.shape(x) if shape is None else tuple(shape)
+    weak = bool(getattr(getattr(x, "aval", None), "weak_type", False))
+    return jax.ShapeDtypeStruct(shape, jnp.result_type(x), weak_type=weak)
 
 
 # ---- the interpreter -------------------------------------------------------------------------
@@ -409,14 +442,15 @@ def _dot_general(eqn, values, batched, size, fallbacks):
         values[1], batched[1], rhs_batch, rhs_free, rhs_contract, (1,) * len(lhs_free), ()
     )
     start = len(lhs_batch) + len(lhs_free) + len(rhs_free)
-    product = lhs * rhs
+    out_dtype = eqn.outvars[0].aval.dtype  # preferred_element_type: in the narrow inputs'
+    product = lhs.astype(out_dtype) * rhs.astype(out_dtype)  # dtype the products overflowed
     out = (
         jnp.sum(product, axis=tuple(range(start, start + len(lhs_contract))))
         if lhs_contract
         else product
     )
     out = jnp.broadcast_to(out, (*out.shape[:-1], size))
-    return [out.astype(eqn.outvars[0].aval.dtype)], [True]
+    return [out], [True]
 
 
 def _branch_flags(branches, avals, batched, size) -> list[bool]:

@@ -82,11 +82,45 @@ def test_value_and_grad_inside_matches_vmap(dtype):
     close(vmap_minor(value_and_grad)(scales, ys), jax.vmap(value_and_grad)(scales, ys), dtype)
 
 
-def test_gradient_taken_outside_is_autodiff_of_the_primal():
+def test_a_gradient_taken_outside_keeps_the_custom_rules():
+    """Taken outside, a function with custom derivative rules runs under jax.vmap: evaluating
+    the rules by their primal code made the SVD filters' gradients NaN (the SVD's derivative,
+    which their rules replace), relu's derivative at 0 one half and a custom_vjp's its primal's.
+    Under jax.vmap and jax.jacfwd too."""
     model, prior, ys, scales = linear_case(jnp.float64)
-    loglik = kalman_loglik(model, prior)
-    total = lambda batched: lambda s: jnp.sum(batched(loglik)(s, ys))
-    close(jax.grad(total(vmap_minor))(scales), jax.grad(total(jax.vmap))(scales), jnp.float64)
+    for estimator in (je.KalmanFilter(), je.SVDEKF()):
+        loglik = lambda s, y, e=estimator: je.run(e, scaled_Q(model, s), y, prior=prior).loglik
+        total = lambda batched, f=loglik: lambda s: jnp.sum(batched(f)(s, ys))
+        expected = jax.grad(total(jax.vmap))(scales)
+        assert np.all(np.isfinite(expected))
+        close(jax.grad(total(vmap_minor))(scales), expected, jnp.float64)
+        close(jax.jacfwd(total(vmap_minor))(scales), expected, jnp.float64)
+
+    @jax.custom_vjp
+    def hundredfold(x):
+        return jnp.sin(x)
+
+    hundredfold.defvjp(lambda x: (jnp.sin(x), None), lambda _, g: (100 * g,))
+    for f in (jax.nn.relu, hundredfold):
+        total = lambda batched, f=f: lambda x: jnp.sum(batched(f)(x))
+        x = jnp.zeros(3)
+        expected = jax.grad(total(jax.vmap))(x)
+        close(jax.grad(total(vmap_minor))(x), expected, jnp.float64)
+        batch = jax.vmap(jax.grad(total(vmap_minor)))(jnp.zeros((2, 3)))  # under jax.vmap
+        close(batch, jnp.stack([expected] * 2), jnp.float64)
+
+
+def test_contractions_keep_preferred_element_type_and_weak_types():
+    """A dot_general with preferred_element_type multiplied in the inputs' dtype: int8 100 x 100
+    summed over 4 gave 64 (overflowed) for 40 000. A weakly typed float batch times a float16
+    array came out float64 where jax.vmap gives float16."""
+    a = jnp.full((3, 4, 4), 100, jnp.int8)
+    dot = lambda x: jnp.dot(x, x, preferred_element_type=jnp.int32)
+    np.testing.assert_array_equal(vmap_minor(dot)(a), jax.vmap(dot)(a))
+    assert int(vmap_minor(dot)(a)[0, 0, 0]) == 40_000
+    weak = jnp.broadcast_to(jnp.asarray(1.5), (3,))  # a Python float's weak type
+    half = lambda x: x * jnp.ones(2, jnp.float16)
+    assert vmap_minor(half)(weak).dtype == jax.vmap(half)(weak).dtype == jnp.float16
 
 
 def test_nonlinear_filter_under_jit_and_vmap():
