@@ -207,6 +207,15 @@ def test_design_names_a_bad_cov0_or_S_and_differentiates_in_L_C_and_H2():
             design(system, structure, eye, ts, S=jnp.eye(2))
         with pytest.raises(ValueError, match="^ts: must be increasing"):  # an error in diffrax
             design(system, structure, eye, ts[::-1])
+        # a NaN in the system surfaced as an EquinoxRuntimeError from inside the design's ODE,
+        # a float hears as a TypeError from a logical operation
+        matrices = {name: getattr(system, name) for name in ("A", "C", "F", "L", "H1", "H2")}
+        for name, value in matrices.items():
+            with pytest.raises(ValueError, match=f"^{name}: contains NaN"):
+                nan = {**matrices, name: value.at[0].set(jnp.nan)}
+                LargeScaleSystem(**nan, Q=system.Q, R=system.R)
+        with pytest.raises(ValueError, match="^hears: must be boolean, got float"):
+            CommunicationStructure(structure.hears.astype(float))
 
         def cost(scales):  # of L, C and H2: one gradient program for the three
             where = lambda s: (s.L, s.C, s.H2)

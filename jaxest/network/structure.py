@@ -90,7 +90,11 @@ class LargeScaleSystem(eqx.Module):
                     f"{name}: time axis of length {value.shape[0]}, "
                     f"but {len(self.switch_times)} switch_times"
                 )
-        # values are checked when concrete; under jit/vmap check_matrix checks shapes only
+        # values are checked when concrete; under jit/vmap check_matrix checks shapes only. A
+        # NaN in the others surfaced as an EquinoxRuntimeError from inside the design's ODE
+        for name in ("A", "C", "F", "H1", "H2"):
+            check_matrix(name, getattr(self, name), ndim=3)  # finite
+        check_matrix("L", self.L, ndim=4)
         check_matrix("Q", self.Q, psd=True, ndim=3)
         check_matrix("R", self.R, spd=True, ndim=3)
 
@@ -147,6 +151,9 @@ class CommunicationStructure(eqx.Module):
         _check_switch_times(self.switch_times)
         if self.hears.ndim not in (2, 3) or self.hears.shape[-1] != self.hears.shape[-2]:
             raise ValueError(f"hears: expected shape (N, N) or (K, N, N), got {self.hears.shape}")
+        if not jnp.issubdtype(self.hears.dtype, jnp.integer) and self.hears.dtype != bool:
+            # a float one raised a TypeError from a logical operation in the design
+            raise ValueError(f"hears: must be boolean, got {self.hears.dtype}; use hears != 0")
         if self.hears.ndim == 3 and self.hears.shape[0] != len(self.switch_times):
             raise ValueError(
                 f"hears: time axis of length {self.hears.shape[0]}, "
