@@ -117,9 +117,10 @@ InformationStatus = Status.extend(
         "the information form disagrees with the covariance form: the measurement update moved "
         "the mean more than half a posterior standard deviation away from x + P H^T S^-1 e, or "
         "the information filter's Y(k+1|k) is off the inverse of F P F^T + G Q G^T by more "
-        "than half in some direction. Inverting the covariances lost their accuracy (R far "
-        "below H P H^T for this dtype, or P too ill-conditioned); use a covariance-form filter "
-        "(KalmanFilter, SquareRootKF, ImprovedSVDKF) or float64",
+        "than half in some direction. Either form may be the one that lost its accuracy: the "
+        "information form where R is far below H P H^T for this dtype (use a covariance-form "
+        "filter: KalmanFilter, SquareRootKF, ImprovedSVDKF), the covariance form from a prior "
+        "far wider than R (use SquareRootKF); float64 serves both (docs/robustness.md)",
     ),
 )
 """The information-form filters' status flags (:class:`EKF`, :class:`InformationFilter`,
