@@ -25,6 +25,15 @@ def inner_jaxprs(eqn) -> Iterator[jex_core.Jaxpr]:
                 yield inner
 
 
+def any_equation(jaxpr: jex_core.Jaxpr, predicate) -> bool:
+    """Whether ``predicate(eqn)`` holds for an equation of ``jaxpr`` or of a jaxpr inside it
+    (:func:`inner_jaxprs`)."""
+    return any(
+        predicate(eqn) or any(any_equation(inner, predicate) for inner in inner_jaxprs(eqn))
+        for eqn in jaxpr.eqns
+    )
+
+
 def zero_outputs(jaxpr: jex_core.Jaxpr) -> bool:
     """Whether every output of ``jaxpr`` is zero whatever its inputs: built from zero literals
     by broadcasting, reshaping, slicing, concatenating, adding and selecting alone, as JAX

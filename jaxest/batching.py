@@ -49,7 +49,7 @@ from jax import lax
 from jax.extend import core as jex_core
 
 from jaxest import xla_flags
-from jaxest._jaxpr import inner_jaxprs
+from jaxest._jaxpr import any_equation
 from jaxest.linalg import SMALL_MATMUL
 
 #: primitives that act entry by entry (operands of equal shape, or broadcast from size 1)
@@ -128,14 +128,8 @@ def _differentiated(x) -> bool:
 
 def _has_custom_rules(traced: _Traced) -> bool:
     """Whether the traced function has a ``custom_jvp`` or ``custom_vjp`` rule anywhere."""
-    pending = [traced.jaxpr.jaxpr]
-    while pending:
-        jaxpr = pending.pop()
-        for eqn in jaxpr.eqns:
-            if eqn.primitive.name in ("custom_jvp_call", "custom_vjp_call"):
-                return True
-            pending.extend(inner_jaxprs(eqn))
-    return False
+    custom = ("custom_jvp_call", "custom_vjp_call")
+    return any_equation(traced.jaxpr.jaxpr, lambda eqn: eqn.primitive.name in custom)
 
 
 def vmap_minor_fallbacks(fn: Callable, *args, in_axes=0) -> dict[str, int]:

@@ -198,8 +198,9 @@ def normalise_log_weights(log_w):
 
     Normalised relative to the largest log-weight: where the log-weights are huge (a
     measurement far in a tail, 1e16 off in float64 or 1e5 in float32: log-weights near -1e32,
-    resp. -1e10), log w_i - logsumexp(log w) rounds the sum's own log(count) away, so k log-weights tied by rounding each got W = 1 (a
-    weighted "mean" summing k particles, an ESS below one). The shift has no derivative (as in
+    resp. -1e10), log w_i - logsumexp(log w) rounds the sum's own log(count) away, so k
+    log-weights tied by rounding each got W = 1 (a weighted "mean" summing k particles, an ESS
+    below one). The shift has no derivative (as in
     ``jax.nn.logsumexp``): the result does not depend on it."""
     peak = jax.lax.stop_gradient(jnp.max(log_w))
     shifted = log_w - peak  # <= 0, and 0 at the largest

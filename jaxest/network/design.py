@@ -75,10 +75,6 @@ def gain_constraint(system: LargeScaleSystem, structure: CommunicationStructure)
     return GainConstraint(particular, phi, null_mask, residual)
 
 
-def _transpose(X):
-    return jnp.swapaxes(X, -1, -2)
-
-
 @jax.custom_jvp
 def pseudo_inverse_and_left_null_rows(M):
     """For M (..., q, w), w >= q, by its SVD: the pseudo-inverse M^+ (..., w, q), a q x q matrix
@@ -95,24 +91,22 @@ def pseudo_inverse_and_left_null_rows(M):
     eps = jnp.finfo(M.dtype).eps
     in_range = s > max(M.shape[-2:]) * eps * s[..., :1]
     s_inv = jnp.where(in_range, 1.0 / jnp.where(in_range, s, 1.0), 0.0)
-    pinv = jnp.einsum("...ku,...u,...qu->...kq", _transpose(Vt), s_inv, U)
+    pinv = jnp.einsum("...ku,...u,...qu->...kq", Vt.mT, s_inv, U)
     null_mask = (~in_range).astype(M.dtype)
-    return pinv, null_mask[..., :, None] * _transpose(U), null_mask
+    return pinv, null_mask[..., :, None] * U.mT, null_mask
 
 
 @pseudo_inverse_and_left_null_rows.defjvp
 def _pseudo_inverse_and_left_null_rows_jvp(primals, tangents):
     (M,), (dM,) = primals, tangents
     pinv, phi, null_mask = pseudo_inverse_and_left_null_rows(M)
-    left_null = _transpose(phi) @ phi  # I - M M^+
+    left_null = phi.mT @ phi  # I - M M^+
     right_null = jnp.eye(M.shape[-1], dtype=M.dtype) - pinv @ M  # I - M^+ M
     d_pinv = (
-        -pinv @ dM @ pinv
-        + pinv @ _transpose(pinv) @ _transpose(dM) @ left_null
-        + right_null @ _transpose(dM) @ _transpose(pinv) @ pinv
+        -pinv @ dM @ pinv + pinv @ pinv.mT @ dM.mT @ left_null + right_null @ dM.mT @ pinv.mT @ pinv
     )
     moved = left_null @ dM @ pinv
-    d_phi = -phi @ (moved + _transpose(moved))
+    d_phi = -phi @ (moved + moved.mT)
     return (pinv, phi, null_mask), (d_pinv, d_phi, jnp.zeros_like(null_mask))
 
 

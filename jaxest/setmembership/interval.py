@@ -31,7 +31,7 @@ from jax import lax
 from jax.extend import core as jex
 from jaxtyping import Array, Float
 
-from jaxest._jaxpr import inner_jaxprs, zero_outputs
+from jaxest._jaxpr import any_equation, zero_outputs
 
 #: outward widening (in ulps) of library functions that are not correctly rounded
 _LIBM_ULPS = 4
@@ -571,11 +571,12 @@ def _shapes(box: Interval, args):
 
 def _has_non_smooth(jaxpr) -> bool:
     """Whether ``jaxpr`` or a jaxpr inside it applies a primitive :func:`_kink` knows."""
-    return any(
-        eqn.primitive.name in _NON_SMOOTH
-        or (eqn.primitive.name == "convert_element_type" and _makes_a_step(eqn))
-        or any(map(_has_non_smooth, inner_jaxprs(eqn)))
-        for eqn in jaxpr.eqns
+    return any_equation(
+        jaxpr,
+        lambda eqn: (
+            eqn.primitive.name in _NON_SMOOTH
+            or (eqn.primitive.name == "convert_element_type" and _makes_a_step(eqn))
+        ),
     )
 
 
