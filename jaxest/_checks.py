@@ -205,17 +205,20 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
 
 
-def check_precision(model, ys, prior) -> None:
-    """The prior (a Gaussian, an ellipsoid) in the widest precision of the model's arrays, the
-    measurements and itself: a narrower one (a float32 prior with a float64 model) made the
-    filters' state change dtype after one step, a TypeError from inside the scan."""
+def check_precision(model, ys, prior, *, name: str = "prior", **updated_with) -> None:
+    """The prior (a Gaussian, an ellipsoid, or the state alone, named ``name``) in the widest
+    precision of itself, the model's arrays, the measurements and any other array it is updated
+    with (``updated_with``, by name): a narrower one (a float32 prior with a float64 model) made
+    the estimator's state change dtype after one step, a TypeError from inside the scan."""
     inexact = lambda tree: [a for a in jax.tree.leaves(tree) if eqx.is_inexact_array(a)]
     own = jnp.result_type(*inexact(prior))
-    widest = jnp.result_type(own, ys, *inexact(model))
-    if own != widest:
+    widths = {"model": jnp.result_type(*inexact(model)), "ys": jnp.result_type(ys)}
+    widths |= {other: jnp.result_type(a) for other, a in updated_with.items()}
+    if jnp.result_type(own, *widths.values()) != own:
+        given = ", ".join(f"{other} {dtype}" for other, dtype in widths.items())
         raise ValueError(
-            f"prior: is {own}, narrower than the model's arrays or the measurements ({widest}); "
-            f"give all of them one precision"
+            f"{name}: is {own}, narrower than what it is updated with ({given}); give all of "
+            f"them one precision"
         )
 
 

@@ -23,7 +23,7 @@ import numpy as np
 from jax.sharding import Mesh, PartitionSpec
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_complete
+from jaxest._checks import check_complete, check_precision
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._priors import Gaussian
 from jaxest._status import finite_status
@@ -111,23 +111,11 @@ class NetworkFilter(AbstractEstimator):
         if not self.dt > 0:
             raise ValueError(f"dt: must be positive (the sample interval), got {self.dt}")
         check_complete(ys, "the gains are designed for every node measuring at every sample")
-        self._check_precision(model, ys, prior)
-
-    def _check_precision(self, model, ys, prior) -> None:
-        """The state (``prior.mean``) in floating point as wide as the model, the gains and
-        the measurements: else its dtype changed after one step, a TypeError from the scan."""
-        own = jnp.result_type(prior.mean)
-        if not jnp.issubdtype(own, jnp.floating):
-            raise ValueError(f"prior.mean: must be real floating point, got {own}")
-        inexact = [a for a in jax.tree.leaves(model) if eqx.is_inexact_array(a)]
-        widths = {"model": jnp.result_type(*inexact), "gains": jnp.result_type(self.gains),
-                  "ys": jnp.result_type(ys)}  # fmt: skip
-        if jnp.result_type(own, *widths.values()) != own:
-            given = ", ".join(f"{name} {dtype}" for name, dtype in widths.items())
+        if not jnp.issubdtype(jnp.result_type(prior.mean), jnp.floating):
             raise ValueError(
-                f"prior.mean: is {own}, narrower than what it is updated with ({given}); "
-                f"give all of them one precision"
+                f"prior.mean: must be real floating point, got {jnp.result_type(prior.mean)}"
             )
+        check_precision(model, ys, prior.mean, name="prior.mean", gains=self.gains)
 
     def check_steps(self, model, first: int, count: int) -> None:
         check_time_axis("gains", self.gains, first, count, ndim=3)
