@@ -257,3 +257,14 @@ def test_pinned_model_is_the_full_model_with_the_pinned_entries_set():
     np.testing.assert_allclose(F, F_reduced, rtol=1e-13, atol=1e-13)
     with pytest.raises(ValueError, match="pinned"):
         flight.pin_parameters(full, {"u": 0.0})
+
+
+def test_a_sample_interval_that_is_not_positive_is_named():
+    """flight_model(dt=0) and (dt=-0.04) ran with status OK (a record with a reversed time axis
+    gives a negative dt)."""
+    noise = jnp.ones(6)
+    for dt in (0.0, -0.04, float("nan")):
+        with pytest.raises(ValueError, match="^dt: must be a positive sample interval"):
+            flight.flight_model(dt, noise, noise)
+    with pytest.raises(ValueError, match="^substeps: must be a positive integer"):
+        flight.flight_model(0.04, noise, noise, substeps=0)

@@ -144,3 +144,12 @@ def test_loglik_derivative_wrt_noise_levels_matches_finite_differences():
     fd = (float(f(z + 1e-4 * direction)) - float(f(z - 1e-4 * direction))) / 2e-4
     assert np.isfinite(float(value))
     np.testing.assert_allclose(float(slope), fd, rtol=1e-5)
+
+
+def test_a_float32_truth_under_x64():
+    """true_flight(dtype=float32) raised a TypeError from its scan where x64 is on (as the suite
+    and the study run): its inputs were float64 through NumPy constants and a float64 time."""
+    low = sim.true_flight("elevator", 10, duration=1.0, dtype=jnp.float32)
+    high = sim.true_flight("elevator", 10, duration=1.0)
+    assert low.states.dtype == low.inputs.dtype == low.t.dtype == jnp.float32
+    np.testing.assert_allclose(low.states, high.states, rtol=1e-4, atol=1e-4)

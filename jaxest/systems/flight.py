@@ -245,6 +245,10 @@ def flight_model(
     m/s^2, p, q, r in rad/s) and measurement noise std ``output_std`` (V in m/s, angles in rad, h in
     m). Its inputs are :func:`interval_inputs` of the measured inputs. The dtype follows the arrays
     given."""
+    if not float(dt) > 0:
+        raise ValueError(f"dt: must be a positive sample interval in seconds, got {dt}")
+    if not (isinstance(substeps, int | np.integer) and substeps >= 1):
+        raise ValueError(f"substeps: must be a positive integer, got {substeps!r}")
     transition = FlightTransition(dt=float(dt), substeps=substeps)
     return FlightModel(
         f=transition,

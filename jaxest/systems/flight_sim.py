@@ -21,6 +21,8 @@ white Gaussian noise at HFB-320 levels (docs/papers/svd_ekf.md).
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -109,9 +111,9 @@ def true_inputs(x, t, maneuver: str):
     alpha, beta = jnp.arctan2(w, u), jnp.arcsin(v / speed)
     alpha0, v0 = TRIM["alpha"], TRIM["V"]
     lift = (alpha - _ALPHA_ZERO_LIFT) / (alpha0 - _ALPHA_ZERO_LIFT) * (speed / v0) ** 2
-    a_x = GRAVITY * np.sin(alpha0) - (speed - v0) / _SPEED_LAG
+    a_x = GRAVITY * math.sin(alpha0) - (speed - v0) / _SPEED_LAG
     a_y = _SIDE_FORCE * beta
-    a_z = -GRAVITY * np.cos(alpha0) * lift
+    a_z = -GRAVITY * math.cos(alpha0) * lift
     p_cmd, q_cmd, r_cmd = commands(maneuver, t)
     turn_rate = GRAVITY * jnp.tan(phi) / speed
     q = q_cmd + turn_rate * jnp.sin(phi) * jnp.cos(theta)
@@ -145,8 +147,10 @@ def true_flight(maneuver: str, rate_hz: float, duration: float = DURATION, dtype
     x0 = jnp.asarray(x0, dtype=dtype)
     rates = lambda x, t: kinematics(x, true_inputs(x, t, maneuver))
 
+    # times in the state's precision: a float64 t (i * h under x64) made a float32 flight's
+    # inputs float64, a TypeError from the scan
     def fine_step(x, i):
-        t = i * h
+        t = (i * h).astype(x.dtype)
         k1 = rates(x, t)
         k2 = rates(x + 0.5 * h * k1, t + 0.5 * h)
         k3 = rates(x + 0.5 * h * k2, t + 0.5 * h)
@@ -154,7 +158,7 @@ def true_flight(maneuver: str, rate_hz: float, duration: float = DURATION, dtype
         return x + (h / 6.0) * (k1 + 2 * k2 + 2 * k3 + k4), None
 
     def sample(x, k):
-        t = k / rate_hz
+        t = (k / rate_hz).astype(x.dtype)
         inputs = true_inputs(x, t, maneuver)
         x_next, _ = jax.lax.scan(fine_step, x, k * FINE_STEPS + jnp.arange(FINE_STEPS))
         return x_next, (t, x, inputs)
