@@ -43,15 +43,34 @@ def concrete_k0(k0, meaning: str) -> int | None:
 
 
 def check_positive_int(name: str, value) -> None:
-    """``value`` is a Python int of at least 1 (a count: runs, iterations; not a bool)."""
-    if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+    """``value`` is an integer of at least 1, Python's or NumPy's (a count: runs, iterations;
+    not a bool)."""
+    if not _is_integer(value) or value < 1:
         raise ValueError(f"{name}: must be a positive integer, got {value!r}")
 
 
 def check_nonnegative_int(name: str, value) -> None:
-    """``value`` is a Python int of at least 0, not a bool (a count that may be zero: steps)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+    """``value`` is an integer of at least 0, Python's or NumPy's, not a bool (a count that may
+    be zero: steps)."""
+    if not _is_integer(value) or value < 0:
         raise ValueError(f"{name}: must be a non-negative integer, got {value!r}")
+
+
+def _is_integer(value) -> bool:
+    return isinstance(value, int | np.integer) and not isinstance(value, bool | np.bool_)
+
+
+def check_key(name: str, key) -> None:
+    """``key`` is one PRNG key: a typed key (``jax.random.key``, any implementation) of shape
+    (), or the raw uint32 vector of ``jax.random.PRNGKey``; JAX's own errors for an int seed, a
+    batch of keys or an int32 vector name no argument."""
+    dtype = getattr(key, "dtype", None)
+    if dtype is not None and jnp.issubdtype(dtype, jax.dtypes.prng_key):
+        if np.shape(key) != ():
+            raise ValueError(f"{name}: expected one PRNG key, got a batch of shape {np.shape(key)}")
+    elif dtype != np.uint32 or np.ndim(key) != 1:
+        got = f"{dtype} array of shape {np.shape(key)}" if dtype is not None else repr(key)
+        raise ValueError(f"{name}: expected a PRNG key (jax.random.key(seed)), got {got}")
 
 
 def as_array(name: str, value):
@@ -212,7 +231,8 @@ def check_precision(model, ys, prior, *, name: str = "prior", **updated_with) ->
     the estimator's state change dtype after one step, a TypeError from inside the scan."""
     inexact = lambda tree: [a for a in jax.tree.leaves(tree) if eqx.is_inexact_array(a)]
     own = jnp.result_type(*inexact(prior))
-    widths = {"model": jnp.result_type(*inexact(model)), "ys": jnp.result_type(ys)}
+    widths = {"model": jnp.result_type(*inexact(model))} if inexact(model) else {}
+    widths["ys"] = jnp.result_type(ys)
     widths |= {other: jnp.result_type(a) for other, a in updated_with.items()}
     if jnp.result_type(own, *widths.values()) != own:
         given = ", ".join(f"{other} {dtype}" for other, dtype in widths.items())

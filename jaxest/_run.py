@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxest._checks import concrete_k0
+from jaxest._checks import check_key, concrete_k0
 from jaxest._estimator import (
     AbstractAssociativeEstimator,
     AbstractEstimator,
@@ -185,6 +185,8 @@ def run(
         checkpoint = estimator.checkpoint_by_default and not parallel
     if estimator.needs_key and key is None:
         raise ValueError(f"key: {type(estimator).__name__} samples; pass key=jax.random.key(...)")
+    if key is not None:
+        check_key("key", key)
     if state is None:
         estimator.check(model, ys, inputs, prior)
         estimator = estimator.for_arguments(model, prior)

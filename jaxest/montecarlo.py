@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxest._checks import check_positive_int, is_concrete
+from jaxest._checks import check_key, check_positive_int, is_concrete
 from jaxest.batching import COMPILER_OPTIONS, jit_with_options_at_top_level, vmap_minor
 
 RUNS_AXIS = "runs"
@@ -69,17 +69,26 @@ def monte_carlo(
 
     Returns the outputs with a leading axis of length N (on every host).
 
+    A typed key of any implementation works. With the ``rbg`` and ``unsafe_rbg`` ones, JAX's
+    draws under ``vmap`` are not those of the same key unbatched, so the results then depend on
+    ``chunk_size`` (``chunk_size=1`` gives a loop's) and agree with a loop only in distribution;
+    the default ``threefry2x32`` draws the same numbers either way.
+
     On one process it runs inside ``jit``, ``vmap`` and ``grad`` too (e.g. a jitted gradient
     step of a study's mean loss); across processes it gathers the outputs on the hosts, so it is
     called outside ``jit`` with a concrete key.
     """
+    check_key("key", key)
     check_positive_int("num_runs", num_runs)
     if batching not in _BATCHINGS:
         raise ValueError(f"batching: must be one of {sorted(_BATCHINGS)}, got {batching!r}")
-    if chunk_size is not None and (not isinstance(chunk_size, int) or chunk_size < 1):
-        raise ValueError(f"chunk_size: must be a positive integer or None, got {chunk_size!r}")
-    if mesh == "auto":
+    if chunk_size is not None:
+        check_positive_int("chunk_size", chunk_size)
+    if isinstance(mesh, str) and mesh == "auto":
         mesh = default_mesh()
+    if not (mesh is None or isinstance(mesh, Mesh) and len(mesh.axis_names) == 1):
+        raise ValueError(f"mesh: expected a 1-D jax.sharding.Mesh, None or 'auto', got {mesh!r}")
+    num_runs, chunk_size = int(num_runs), chunk_size and int(chunk_size)
     num_devices = 1 if mesh is None else mesh.devices.size
     per_device = chunk_size or math.ceil(num_runs / num_devices)
     chunk = per_device * num_devices
@@ -100,7 +109,7 @@ def monte_carlo(
             padded = jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
         else:
             padded = jax.lax.with_sharding_constraint(padded, sharding)
-    out = _BATCHINGS[batching](run_fn, padded, _is_typed(key))
+    out = _BATCHINGS[batching](run_fn, padded, _key_impl(key))
     if across_processes:
         from jax.experimental import multihost_utils
 
@@ -117,10 +126,10 @@ def _chunked_key_data(keys, num_chunks: int, chunk: int):
     return raw.reshape(num_chunks, chunk, *raw.shape[1:])
 
 
-def _all_chunks(run_fn: Callable, raw_keys, typed: bool, *, batch: Callable):
+def _all_chunks(run_fn: Callable, raw_keys, impl, *, batch: Callable):
     """Every run: a ``lax.map`` over chunks of a ``batch`` (``jax.vmap`` or ``vmap_minor``)
-    over the runs of a chunk."""
-    chunk_keys = jax.random.wrap_key_data(raw_keys) if typed else raw_keys
+    over the runs of a chunk; ``impl``: the typed key's implementation (``None`` for raw keys)."""
+    chunk_keys = raw_keys if impl is None else jax.random.wrap_key_data(raw_keys, impl=impl)
     return jax.lax.map(batch(run_fn), chunk_keys)
 
 
@@ -135,3 +144,8 @@ _BATCHINGS = {
 
 def _is_typed(keys) -> bool:
     return jnp.issubdtype(keys.dtype, jax.dtypes.prng_key)
+
+
+def _key_impl(key):
+    """A typed key's implementation (any PRNG: threefry, rbg, ...), ``None`` for a raw key."""
+    return jax.random.key_impl(key) if _is_typed(key) else None

@@ -133,3 +133,24 @@ def test_rejects_bad_arguments():
         monte_carlo(lambda k: k, jax.random.PRNGKey(0), 0)
     with pytest.raises(ValueError, match="chunk_size"):
         monte_carlo(lambda k: k, jax.random.PRNGKey(0), 3, chunk_size=0)
+    # JAX's TypeErrors, an AttributeError and a rejected NumPy integer named nothing before
+    draw = lambda k: jax.random.normal(k)
+    for key, message in [
+        (0, "^key: expected a PRNG key .*got 0"),
+        (jnp.zeros(2, jnp.int32), r"^key: expected a PRNG key .*int32 array of shape \(2,\)"),
+        (jax.random.split(jax.random.key(0)), r"^key: expected one PRNG key, got a batch"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            monte_carlo(draw, key, 3)
+    with pytest.raises(ValueError, match="^mesh: expected a 1-D jax.sharding.Mesh"):
+        monte_carlo(draw, jax.random.key(0), 3, mesh="all")
+    assert monte_carlo(draw, jax.random.key(0), np.int64(3), chunk_size=np.int64(2)).shape == (3,)
+
+
+def test_keys_of_any_prng_implementation():
+    """A typed rbg key raised a TypeError (its data was rewrapped as the default threefry's).
+    rbg's draws under vmap differ from unbatched ones, so chunks of one run match a loop."""
+    draw = lambda k: jax.random.normal(k, (2,))
+    key = jax.random.key(0, impl="rbg")
+    loop = np.stack([draw(k) for k in jax.random.split(key, 3)])
+    np.testing.assert_array_equal(monte_carlo(draw, key, 3, chunk_size=1, mesh=None), loop)
