@@ -99,13 +99,6 @@ class AbstractEstimator(eqx.Module):
         (default: the built-in Gaussian models' matrices, :func:`jaxest.models.check_time_axes`)."""
         check_time_axes(model, first, count)
 
-    def for_arguments(self, model, prior) -> AbstractEstimator:
-        """The estimator to run on these arguments, called by :func:`jaxest.run` before tracing
-        (on a run from a prior): one whose derivative rule needs what concrete arguments do not
-        give switches it off here (the Kalman filter's Fisher rule on a singular Q); default:
-        ``self``."""
-        return self
-
     def derivative_fields(self, model) -> tuple[str, ...]:
         """The output fields :meth:`with_derivatives` needs of a run on ``model`` from a prior:
         :func:`jaxest.run` stacks them whatever the caller saves and drops those the caller did

@@ -189,7 +189,6 @@ def run(
         check_key("key", key)
     if state is None:
         estimator.check(model, ys, inputs, prior)
-        estimator = estimator.for_arguments(model, prior)
     first = concrete_k0(k0, "ys[0]")
     if first is not None:  # also when resuming, which skips the estimator's checks
         estimator.check_steps(model, first, np.shape(ys)[0])

@@ -138,23 +138,44 @@ def test_vmap_and_float32():
 
 
 @pytest.mark.parametrize("singular", ["zero_variance", "rank_one"])
-def test_a_singular_Q_is_left_to_autodiff_or_gives_nan_never_a_wrong_gradient(singular):
-    """(3) has no density at a singular Q (a noise that drives some states only). Where run sees
-    Q's values (closed over, also under jit) the gradient is autodiff's; where Q is traced, NaN.
-    The rule used to give NaN for the first and a wrong finite gradient for the second."""
+def test_a_singular_Q_gives_autodiffs_gradient_also_traced(singular):
+    """A singular Q (a noise that drives some states only): the rule inverts no Q, so the
+    gradient in every parameter is autodiff's also where Q is traced. The form with Q^-1 gave NaN
+    there (and autodiff was run instead where Q's values were known)."""
     model, prior, ys, inputs = problem(False)
     Q = np.diag([0.0, 0.3, 0.2]) if singular == "zero_variance" else np.full((3, 3), 0.1)
-    model = eqx.tree_at(lambda m: m.Q, model, jnp.asarray(Q))
+    args = (eqx.tree_at(lambda m: m.Q, model, jnp.asarray(Q)), prior, ys, inputs)
+    assert_same_gradient(grad_all(CLOSED_FORM, args), grad_all(AUTODIFF, args), 1e-9)
 
-    def scaled(filt):  # d log p / d(scale of F, H) with Q a constant
-        return jax.jit(jax.grad(lambda theta: loglik(filt)(
-            eqx.tree_at(lambda m: (m.F, m.H), model, (model.F * theta[0], model.H * theta[1])),
-            prior, ys, inputs,
-        )))(jnp.ones(2))  # fmt: skip
 
-    np.testing.assert_allclose(scaled(CLOSED_FORM), scaled(AUTODIFF), rtol=1e-12)
-    traced = grad_all(CLOSED_FORM, (model, prior, ys, inputs))[0]
-    assert np.all(np.isnan(np.asarray(traced.F)))
+def test_noise_far_below_the_state_uncertainty_keeps_the_gradient_accurate():
+    """Q and R down to 1e-7 of the state's prior variance, float32 against float64 autodiff; Q
+    = 1e-12 in float64. Formed with Q^-1 (R^-1) twice around a difference of covariances of the
+    state's size, the rule was off by 17 % in H at R = 1e-7 (float32) and by half in Q at
+    Q = 1e-12 (float64) here (benchmarks/fisher_rule.py has the grid)."""
+    F, H = jnp.array([[1.0, 0.1], [0.0, 1.0]]), jnp.array([[1.0, 0.0]])
+    prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
+    truth = je.LinearGaussian(F, H, 1e-2 * jnp.eye(2), jnp.array([[0.1]]))
+    ys = je.simulate(truth, prior, 200, jax.random.PRNGKey(1)).y
+    scales = jnp.array([[1e-2, 1e-1], [1e-6, 1e-1], [1e-2, 1e-7], [1e-6, 1e-5], [1e-12, 1e-1]])
+
+    def gradients(filt, dtype, rows):
+        cast = lambda tree: jax.tree.map(lambda a: jnp.asarray(a, dtype), tree)
+
+        def one(scale):
+            model = je.LinearGaussian(F, H, scale[0] * jnp.eye(2), scale[1] * jnp.eye(1))
+            return jax.grad(lambda m: loglik(filt)(m, cast(prior), cast(ys), None))(cast(model))
+
+        return jax.jit(jax.vmap(one))(cast(scales[rows]))
+
+    reference = gradients(AUTODIFF, jnp.float64, slice(None))
+    for dtype, rows, rtol in [(jnp.float64, slice(None), 1e-8), (jnp.float32, slice(4), 1e-3)]:
+        closed = gradients(CLOSED_FORM, dtype, rows)
+        for name in ("F", "H", "Q", "R"):
+            got, want = getattr(closed, name), getattr(reference, name)[rows]
+            scale = np.max(np.abs(np.asarray(want)), axis=(1, 2), keepdims=True)
+            relative = np.abs(np.asarray(got, np.float64) - want) / scale
+            assert np.all(relative < rtol), (name, np.dtype(dtype).name, relative.max(axis=(1, 2)))
 
 
 def test_a_run_resumed_at_k0_on_a_time_varying_model():
@@ -196,48 +217,3 @@ def test_other_outputs_keep_autodiff():
         return jax.jit(jax.grad(fn, argnums=(0, 1, 2, 3)))(*args)
 
     assert_same_gradient(loss(CLOSED_FORM), loss(AUTODIFF), 1e-9)
-
-
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32], ids=["float64", "float32"])
-def test_expected_logpdf_derivative_is_autodiffs(dtype):
-    """Eq (3)'s closed-form derivative (fisher.expected_logpdf) against autodiff of the same
-    formula through jnp.linalg: jvp along unsymmetric directions, grad, the Hessian (forward over
-    the rule) and, under vmap over steps with S shared, the same; float64 and float32."""
-    from jaxest.filters.fisher import expected_logpdf
-
-    def plain(r, C, S):
-        S = 0.5 * (S + S.T)
-        return -0.5 * (
-            jnp.linalg.slogdet(S)[1] + jnp.trace(jnp.linalg.solve(S, C + jnp.outer(r, r)))
-        )
-
-    rng = np.random.default_rng(5)
-    A, B = rng.normal(size=(2, 3, 3))
-    args = tuple(
-        jnp.asarray(a, dtype)
-        for a in (rng.normal(size=3), A @ A.T + 0.3 * np.eye(3), B @ B.T + np.eye(3))
-    )
-    directions = tuple(jnp.asarray(rng.normal(size=a.shape), dtype) for a in args)
-    tol = dict(rtol=1e-10, atol=1e-12) if dtype == jnp.float64 else dict(rtol=2e-4, atol=1e-5)
-    ours, theirs = (
-        jax.jit(lambda *a, f=f: jax.jvp(f, a, directions)) for f in (expected_logpdf, plain)
-    )
-    for a, b in zip(ours(*args), theirs(*args), strict=True):
-        np.testing.assert_allclose(a, b, **tol)
-    argnums = (0, 1, 2)
-    for a, b in zip(
-        jax.tree.leaves(jax.jit(jax.grad(expected_logpdf, argnums))(*args)),
-        jax.tree.leaves(jax.jit(jax.grad(plain, argnums))(*args)),
-        strict=True,
-    ):
-        np.testing.assert_allclose(a, b, **tol)
-    flat, unravel = jax.flatten_util.ravel_pytree(args)
-    hessian = lambda f: jax.jit(jax.hessian(lambda z: f(*unravel(z))))(flat)
-    np.testing.assert_allclose(hessian(expected_logpdf), hessian(plain), **tol)
-    steps = lambda f: jax.jit(jax.vmap(jax.grad(f, argnums), in_axes=(0, 0, None)))(
-        args[0] * jnp.arange(1, 4, dtype=dtype)[:, None], jnp.stack([args[1]] * 3), args[2]
-    )
-    for a, b in zip(
-        jax.tree.leaves(steps(expected_logpdf)), jax.tree.leaves(steps(plain)), strict=True
-    ):
-        np.testing.assert_allclose(a, b, **tol)

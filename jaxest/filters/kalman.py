@@ -7,17 +7,13 @@ On a :class:`~jaxest.LinearGaussian` model each is an exact Kalman filter; on a
 
 from __future__ import annotations
 
-import dataclasses
-import functools
 from typing import ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import is_concrete
 from jaxest._status import Status, status_where
 from jaxest.filters.base import (
     AbstractGaussianFilter,
@@ -35,20 +31,10 @@ from jaxest.filters.common import (
     step_status,
     whitened_innovation,
 )
-from jaxest.filters.fisher import fisher_loglik, has_density
+from jaxest.filters.fisher import fisher_loglik
 from jaxest.linalg import cho_solve_lower, chol_inverse, cholesky, inv_spd, symmetrize
 from jaxest.models import LinearGaussian
 from jaxest.smoothers.rts import NEEDED
-
-
-@functools.cache
-def _have_densities(shape: tuple[int, ...], dtype) -> jax.stages.Compiled:
-    """:func:`~jaxest.filters.fisher.has_density` of a stack of covariances of ``shape`` and
-    ``dtype``, compiled once (ahead of time, so that it runs on concrete arrays also inside a
-    caller's trace). Traced outside ``jax.ensure_compile_time_eval``, under which every constant
-    the trace builds (the unrolled Cholesky's index arrays) ran and compiled op by op: 21 small
-    programs on the first run of each shape."""
-    return jax.jit(jax.vmap(has_density)).lower(jax.ShapeDtypeStruct(shape, dtype)).compile()
 
 
 class KalmanFilter(AbstractGaussianFilter):
@@ -57,13 +43,10 @@ class KalmanFilter(AbstractGaussianFilter):
 
     ``closed_form_gradient``: on a :class:`~jaxest.LinearGaussian` model without ``G``, run
     from a prior (not resumed from a state), the total log-likelihood ``result.loglik`` is
-    differentiated by Fisher's identity (an RTS smoother, :mod:`jaxest.filters.fisher`) instead
-    of autodiff through the steps: the same gradient, value_and_grad 1.3-2.3x faster in
-    docs/performance.md. Every other output, and every other model, is differentiated by
-    autodiff, and so is a run whose P0 or Q is singular or nearly so where :func:`jaxest.run`
-    sees their values; under ``jit`` with such a covariance traced the rule's gradient is NaN
-    (:func:`jaxest.filters.fisher.has_density`): pass ``False`` there. ``False``: autodiff
-    everywhere.
+    differentiated by Fisher's identity (a disturbance smoother, :mod:`jaxest.filters.fisher`)
+    instead of autodiff through the steps: the same gradient, singular Q and P0 included,
+    value_and_grad 1.3-2.3x faster in docs/performance.md. Every other output, and every other
+    model, is differentiated by autodiff. ``False``: autodiff everywhere.
     """
 
     factor_type = Covariance
@@ -78,21 +61,6 @@ class KalmanFilter(AbstractGaussianFilter):
 
     def _closed_form(self, model) -> bool:
         return self.closed_form_gradient and isinstance(model, LinearGaussian) and model.G is None
-
-    def for_arguments(self, model, prior) -> KalmanFilter:
-        """Autodiff instead of the Fisher rule where P0 or a Q_k that :func:`jaxest.run` sees
-        has no density the rule can use (:func:`jaxest.filters.fisher.has_density`)."""
-        if not self._closed_form(model):
-            return self
-        if not (is_concrete(prior.cov) and is_concrete(model.Q)):
-            return self  # under jit the rule's tangent is NaN at such a covariance instead
-        n = jnp.shape(prior.cov)[-1]
-        covariances = np.concatenate(
-            [np.asarray(c).reshape(-1, n, n) for c in (prior.cov, model.Q)]
-        )
-        if np.all(np.asarray(_have_densities(covariances.shape, covariances.dtype)(covariances))):
-            return self
-        return dataclasses.replace(self, closed_form_gradient=False)
 
     def derivative_fields(self, model) -> tuple[str, ...]:
         return NEEDED if self._closed_form(model) else ()
