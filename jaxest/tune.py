@@ -32,6 +32,7 @@ from jaxest._checks import (
     is_concrete,
 )
 from jaxest._run import SaveAt, run
+from jaxest._status import Status, status_where
 
 if TYPE_CHECKING:
     import optimistix as optx
@@ -90,10 +91,15 @@ def from_unconstrained(theta, parametrisation: str):
 class FitResult(eqx.Module):
     """The fitted model and the loss of the iterate at each optimiser step: the point an optax
     step starts from, the last point an optimistix minimiser accepted after its step (its first
-    step evaluates the start). Either way ``losses[0]`` is the starting loss."""
+    step evaluates the start). Either way ``losses[0]`` is the starting loss.
+
+    ``status``: :class:`~jaxest.Status` ``NONFINITE`` where a loss, its gradient (optax) or the
+    parameters became NaN or infinite on the way; ``model`` is then the last iterate whose loss
+    (and gradient) were finite, not the NaN the optimiser went on with. ``OK`` (0) otherwise."""
 
     model: eqx.Module
     losses: jax.Array
+    status: jax.Array
 
 
 def _get(model, path: str):
@@ -201,11 +207,11 @@ def fit(
 
         objective = lambda theta: loss(_with_matrices(model, matrices(theta)))
         minimise = _minimiser_steps if minimiser else _optax_steps
-        theta, losses = minimise(optimizer, objective, theta0, num_steps)
-        return matrices(theta), losses
+        theta, losses, status = minimise(optimizer, objective, theta0, num_steps)
+        return matrices(theta), losses, status
 
-    fitted, losses = jax.jit(steps)()
-    return FitResult(_with_matrices(model, fitted), losses)
+    fitted, losses, status = jax.jit(steps)()
+    return FitResult(_with_matrices(model, fitted), losses, status)
 
 
 def _is_minimiser(optimizer) -> bool:
@@ -218,29 +224,51 @@ def _is_minimiser(optimizer) -> bool:
 
 
 def _optax_steps(optimizer, objective, theta0, num_steps):
-    """``num_steps`` steps of an optax transformation from ``theta0``: the final parameter and
-    the loss each step started from."""
+    """``num_steps`` steps of an optax transformation from ``theta0``: the final parameter (or
+    the last finite one, :func:`_finite_or_last_finite`), the loss each step started from and
+    the status."""
     optimizer = optax.with_extra_args_support(optimizer)
     opt_state0 = optimizer.init(theta0)
     value_and_grad = _value_and_grad(objective, opt_state0)
 
     def body(carry, _):
-        theta, opt_state = carry
+        theta, opt_state, last_finite = carry
         value, grads = value_and_grad(theta, state=opt_state)
         updates, opt_state = optimizer.update(
             grads, opt_state, theta, value=value, grad=grads, value_fn=objective
         )
-        return (optax.apply_updates(theta, updates), opt_state), value
+        last_finite = _where_finite((value, grads, theta), theta, last_finite)
+        return (optax.apply_updates(theta, updates), opt_state, last_finite), value
 
-    (theta, _), losses = jax.lax.scan(body, (theta0, opt_state0), None, num_steps)
-    return theta, losses
+    carry0 = (theta0, opt_state0, theta0)
+    (theta, _, last_finite), losses = jax.lax.scan(body, carry0, None, num_steps)
+    return _finite_or_last_finite(theta, losses, last_finite)
+
+
+def _all_finite(tree) -> jax.Array:
+    return jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(tree)]))
+
+
+def _where_finite(checked, new, old):
+    """``new`` where every leaf of ``checked`` is finite, else ``old``."""
+    finite = _all_finite(checked)
+    return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
+
+
+def _finite_or_last_finite(theta, losses, last_finite):
+    """``theta`` and ``Status.OK`` where it and every loss are finite, else the last iterate
+    whose loss was finite and ``NONFINITE``."""
+    fine = _all_finite((theta, losses))
+    theta = jax.tree.map(lambda a, b: jnp.where(fine, a, b), theta, last_finite)
+    return theta, losses, status_where(~fine, Status.NONFINITE)
 
 
 def _minimiser_steps(minimiser, objective, theta0, num_steps):
     """``num_steps`` steps of an optimistix minimiser from ``theta0`` (its own ``init`` and
     ``step``, as ``optimistix.minimise`` runs them, in a ``scan`` so that every step's loss is
-    kept): the last accepted parameter and its loss after each step. Once the minimiser meets
-    its tolerances the remaining steps keep its state.
+    kept): the last accepted parameter (or the last finite one, :func:`_finite_or_last_finite`),
+    its loss after each step and the status. Once the minimiser meets its tolerances the
+    remaining steps keep its state.
 
     optimistix makes its own arrays (L-BFGS's history) in the default float, float64 where x64
     is on, and then fails on float32 parameters: the minimiser steps a copy of the parameters
@@ -258,16 +286,19 @@ def _minimiser_steps(minimiser, objective, theta0, num_steps):
     # the state holds non-array leaves (the descent's linear operator): only arrays are carried
     carried0, static = eqx.partition((start, state0), eqx.is_array)
 
-    def body(carried, _):
+    def body(carry, _):
+        carried, last_finite = carry
         theta, state = eqx.combine(carried, static)
         done = minimiser.terminate(fn, theta, None, {}, state, tags)[0]
         theta, state, _ = minimiser.step(fn, theta, None, {}, state, tags)
         stepped, _ = eqx.partition((theta, state), eqx.is_array)
         carried = jax.tree.map(lambda old, new: jnp.where(done, old, new), carried, stepped)
-        return carried, eqx.combine(carried, static)[1].f_info.f
+        theta, state = eqx.combine(carried, static)
+        return (carried, _where_finite((state.f_info.f, theta), theta, last_finite)), state.f_info.f
 
-    carried, losses = jax.lax.scan(body, carried0, None, num_steps)
-    return eqx.combine(carried, static)[0], losses.astype(jnp.result_type(*jax.tree.leaves(theta0)))
+    (carried, last_finite), losses = jax.lax.scan(body, (carried0, start), None, num_steps)
+    losses = losses.astype(jnp.result_type(*jax.tree.leaves(theta0)))
+    return _finite_or_last_finite(eqx.combine(carried, static)[0], losses, last_finite)
 
 
 def _with_matrices(model, matrices: dict):

@@ -179,6 +179,23 @@ def test_minimiser_stops_at_its_tolerances():
         fit(model, loss, params, optimizer=optx.NelderMead(rtol=1e-3, atol=1e-3))
 
 
+@pytest.mark.parametrize(
+    "optimizer", [optax.sgd(0.1), optx.GradientDescent(0.1, rtol=1e-9, atol=1e-9)],
+    ids=["optax", "optimistix"],
+)  # fmt: skip
+def test_a_loss_that_turns_nan_is_flagged_and_the_last_finite_iterate_kept(optimizer):
+    """Descent on (F - 3)^2 from F = 1, with the loss NaN from F = 2 on (where a filter's
+    likelihood can turn NaN): fit returned the NaN iterate, with nothing to say so."""
+    model = je.LinearGaussian(jnp.eye(1), jnp.eye(1), jnp.eye(1), jnp.eye(1))
+    loss = lambda m: jnp.where(m.F[0, 0] < 2.0, (m.F[0, 0] - 3.0) ** 2, jnp.nan)
+    result = fit(model, loss, {"F": "unconstrained"}, optimizer=optimizer, num_steps=20)
+    assert int(result.status) == je.Status.NONFINITE
+    assert np.any(np.isnan(np.asarray(result.losses)))
+    assert 1.0 < float(result.model.F[0, 0]) < 2.0
+    fine = fit(model, loss, {"F": "unconstrained"}, optimizer=optimizer, num_steps=1)
+    assert int(fine.status) == je.Status.OK
+
+
 def assert_at_grid_maximum(fitted, truth, prior, sims):
     """``fitted``'s Q and R are the likelihood's maximiser found by a fine grid over
     (log q, log r), within its spacing."""
