@@ -267,7 +267,8 @@ class ParticleFilter(AbstractEstimator):
 
     Run as ``jaxest.run(ParticleFilter(...), model, ys, prior=Gaussian(m0, P0), key=key)`` on a
     :class:`~jaxest.LinearGaussian` or :class:`~jaxest.NonlinearGaussian` model (Q positive
-    definite; Q_k may depend on u and k, not on x). Cost O(N) per step.
+    definite; Q_k may depend on u and k, not on x; additive noise x_{k+1} = f(x_k, u_k) + G w_k,
+    not ``noise_on_input``, which is a ``ValueError``). Cost O(N) per step.
     """
 
     needs_key: ClassVar[bool] = True
@@ -305,6 +306,13 @@ class ParticleFilter(AbstractEstimator):
 
     def check(self, model, ys, inputs, prior) -> None:
         check_gaussian_arguments(model, ys, inputs, prior, positive_Q=True)
+        if getattr(model, "noise_on_input", False):
+            raise ValueError(
+                "model: has its noise on the input (noise_on_input=True), x_{k+1} = f(x_k, u_k + "
+                "w_k), whose transition density is not the Gaussian N(f, G Q G^T) the particle "
+                "filter samples and weighs (G the linearisation df/du); give the noise as "
+                "x_{k+1} = f(x_k, u_k) + G w_k, or filter it with noise='augmented'"
+            )
 
     def init(self, model, prior) -> ParticleState:
         N = self.num_particles
