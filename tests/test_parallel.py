@@ -137,6 +137,29 @@ def test_parallel_smoother_equals_sequential_rts(square_root):
     assert bool(par.ok)
 
 
+@pytest.mark.parametrize("parallel", [False, True], ids=["sequential", "parallel"])
+def test_a_float32_smoothed_covariance_that_lost_definiteness_is_flagged(parallel):
+    """A rotation with Q = 1e-6, R = 3e-5 and P0 = 300 I in float32: the square-root filters are
+    accurate (0.01 posterior standard deviations), but the smoother's P(k+1|T) - P(k+1|k) loses
+    P(k|T), which came out indefinite (smallest eigenvalue -3.7e-5 where the float64 one's is
+    3.1e-6) with status OK at every step. Every indefinite P(k|T) is now flagged."""
+    c, s = np.cos(0.3), np.sin(0.3)
+    cast = lambda a: jnp.asarray(a, jnp.float32)
+    model = je.LinearGaussian(
+        cast([[c, -s], [s, c]]), cast([[1.0, 0.5]]), cast(1e-6 * np.array([[1.0, 0.3], [0.3, 0.5]])),
+        cast([[3e-5]]),
+    )  # fmt: skip
+    prior = je.Gaussian(cast(np.zeros(2)), cast(300.0 * np.eye(2)))
+    ys = cast(np.random.default_rng(0).normal(size=(30, 1)))
+    filt = je.ParallelKalmanFilter() if parallel else je.SquareRootKF()
+    filtered = je.run(filt, model, ys, prior=prior)
+    smoothed = je.rts_smooth(model, filtered, parallel=parallel)
+    indefinite = np.linalg.eigvalsh(np.asarray(smoothed.cov, np.float64))[:, 0] <= 0
+    flagged = (np.asarray(smoothed.status) & je.Status.NOT_POSITIVE_DEFINITE) != 0
+    assert int(filtered.any_status) == 0 and np.any(indefinite)
+    assert np.all(flagged[indefinite])
+
+
 def precise_measurements(T=10_000):
     """A 4-state model with R = 10^-4 x SPD (P+ much smaller than P-), a prior, T measurements
     and the float64 sequential filter's log-likelihood."""

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
+from jaxest.filters.common import definiteness_status
 from jaxest.linalg import after, mm, symmetrize
 from jaxest.scan import associative_scan
 from jaxest.smoothers.rts import SmootherResult, smoother_gain, transition_cross_covariance
@@ -80,6 +81,7 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None, k0=0):
     )
     suffixes = associative_scan(jax.vmap(combine), elements, reverse=True)
     status = jax.vmap(finite_status)(suffixes.g, suffixes.L)
+    status = status | jax.vmap(definiteness_status)(suffixes.L)
     cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
     return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross)
 

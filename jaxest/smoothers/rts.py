@@ -18,6 +18,7 @@ from jaxtyping import Array, Float, Int
 from jaxest._checks import check_sequence, concrete_k0, first_input, model_shapes
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
+from jaxest.filters.common import definiteness_status
 from jaxest.linalg import (
     cho_solve_lower,
     cholesky,
@@ -34,8 +35,13 @@ class SmootherResult(eqx.Module):
     """Smoothed means x(k|T), covariances P(k|T), status bits per step, and the lag-one cross
     covariances P(k+1,k|T) = Cov(x_{k+1}, x_k | y_0..y_{T-1}) = P(k+1|T) C_k^T, k = 0..T-2
     (Shumway & Stoffer, Time Series Analysis, Property 6.3), which with the means and
-    covariances are the sufficient statistics of EM (:func:`~jaxest.fit_em`) and of the Kalman
-    log-likelihood's gradient (:mod:`jaxest.filters.fisher`)."""
+    covariances are the sufficient statistics of EM (:func:`~jaxest.fit_em`).
+
+    ``status`` holds the filter's bits and the smoother's: ``NONFINITE``, and
+    ``NOT_POSITIVE_DEFINITE`` where P(k|T) has no Cholesky factor. The backward pass forms
+    P(k|T) by a difference, P(k|k) + C_k (P(k+1|T) - P(k+1|k)) C_k^T, which in float32 can
+    lose P(k|T) where it is far below P(k+1|k) even after an accurate (square-root) filter
+    (docs/robustness.md)."""
 
     mean: Float[Array, "T n"]
     cov: Float[Array, "T n n"]
@@ -142,7 +148,8 @@ def backward_pass(result: FilterResult, inputs, cross_covariance, k0=0) -> Smoot
         mean_s = mean + mv(gain, mean_next - pred_mean_next)
         cov_s = symmetrize(cov + sandwich(gain, cov_next - pred_cov_next))
         cross = mm(cov_next, gain.T)
-        return (mean_s, cov_s), (mean_s, cov_s, cross, finite_status(mean_s, cov_s))
+        status = finite_status(mean_s, cov_s) | definiteness_status(cov_s)
+        return (mean_s, cov_s), (mean_s, cov_s, cross, status)
 
     last = (result.mean[-1], result.cov[-1])
     args = (
