@@ -284,6 +284,11 @@ def _check(model, ys, prior, num_iters, fixed, inputs):
         value = getattr(model, name)
         if value is not None and np.ndim(value) != 2:
             raise ValueError(f"model.{name}: fit_em needs a time-invariant model (a 2-D matrix)")
+        if value is not None and not jnp.issubdtype(jnp.result_type(value), jnp.floating):
+            raise ValueError(
+                f"model.{name}: is {jnp.result_type(value)}; fit_em updates the matrices in their "
+                f"own dtype (an integer F was fitted as integers), so give floating point"
+            )
     if inputs is not None and (model.B is None or model.D is None):
         raise ValueError("inputs: fit_em with inputs needs model.B and model.D (zeros to start)")
     if isinstance(fixed, str) or any(name not in PARAMETERS for name in fixed):

@@ -1,6 +1,7 @@
 """je.fit_em against dynamax's LinearGaussianSSM.fit_em, its monotone log-likelihood with inputs
 and held parameters, recovery of a simulated 4-state model's invariants, and argument errors."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -186,3 +187,10 @@ def test_errors_name_the_argument():
         je.fit_em(init, ys[:1], prior=prior, num_iters=2)
     with pytest.raises(ValueError, match="^num_iters: must be a positive integer, got True"):
         je.fit_em(init, ys, prior=prior, num_iters=True)
+    # an integer F was fitted as integers ([[0, 0], ...] with ok=True); an integer Q failed in
+    # the scan
+    for name in ("F", "Q"):
+        integer = eqx.tree_at(lambda m, name=name: getattr(m, name), init,
+                              jnp.eye(3, dtype=jnp.int32))  # fmt: skip
+        with pytest.raises(ValueError, match=f"^model.{name}: is int32; fit_em updates"):
+            je.fit_em(integer, ys, prior=prior, num_iters=2)
