@@ -113,18 +113,22 @@ def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=F
     if not np.all(np.isfinite(a)):
         raise ValueError(f"{name}: contains NaN or infinite entries")
     if spd or psd:
-        check_symmetric_definite(name, a, strict=spd)
+        precision = arr.dtype if jnp.issubdtype(arr.dtype, jnp.floating) else np.float64
+        check_symmetric_definite(name, a, strict=spd, eps=float(jnp.finfo(precision).eps))
 
 
-def check_symmetric_definite(name: str, a: np.ndarray, *, strict: bool):
-    """Symmetric and positive definite (``strict``) or semidefinite, for a concrete array."""
+def check_symmetric_definite(name: str, a: np.ndarray, *, strict: bool, eps: float):
+    """Symmetric and positive definite (``strict``) or semidefinite, for a concrete array held in
+    a precision of machine epsilon ``eps``: semidefinite allows eigenvalues down to -max(1e-12,
+    10 n eps) times the largest entry, a float32 product G Q G^T (or g g^T) of rank below n
+    rounds to eigenvalues of -1e-9 relative, which a float64 tolerance refused."""
     scale = max(np.max(np.abs(a)), np.finfo(np.float64).tiny)
     if np.max(np.abs(a - np.swapaxes(a, -1, -2))) > 1e-6 * scale:
         raise ValueError(f"{name}: must be symmetric")
     smallest = np.min(np.linalg.eigvalsh(0.5 * (a + np.swapaxes(a, -1, -2))))
     if strict and smallest <= 0:
         raise ValueError(f"{name}: must be positive definite (smallest eigenvalue {smallest:.3g})")
-    if not strict and smallest < -1e-12 * scale:
+    if not strict and smallest < -max(1e-12, 10 * a.shape[-1] * eps) * scale:
         raise ValueError(
             f"{name}: must be positive semidefinite (smallest eigenvalue {smallest:.3g})"
         )

@@ -1,5 +1,6 @@
 """Bad input raises ValueError naming the argument, before anything is traced."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -185,6 +186,26 @@ def test_simulate_draws_a_singular_noise_and_names_bad_covariances():
     for bad, start, message in cases:
         with pytest.raises(ValueError, match=message):
             je.simulate(bad, start, 5, jax.random.key(0))
+
+
+def test_float32_products_of_low_rank_are_semidefinite_to_their_precision():
+    """G Q G^T (G 2 x 1) and g g^T formed in float32 have an eigenvalue of -1.7e-9 and -5e-10,
+    which the float64 tolerance (1e-12 of the largest entry) refused: steady_state_smooth
+    rejected a model KalmanFilter runs. A float32 matrix indefinite beyond its rounding still
+    is named."""
+    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    model = je.LinearGaussian(
+        f32([[0.9, 0.1], [0.0, 0.7]]), f32([[1.0, 0.0]]), f32([[1.3]]), f32([[0.5]]),
+        G=f32([[0.3], [0.7]]),
+    )  # fmt: skip
+    prior = je.Gaussian(f32([0.0, 0.0]), f32(np.eye(2)))
+    je.steady_state_smooth(model, f32(np.ones((5, 1))), prior=prior)
+    g = np.array([[0.1], [0.5]])
+    line = je.LinearGaussian(model.F, model.H, f32(g @ g.T), model.R)
+    je.simulate(line, prior, 3, jax.random.key(0))
+    with pytest.raises(ValueError, match="^model.Q: must be positive semidefinite"):
+        je.simulate(eqx.tree_at(lambda m: m.Q, line, f32([[1.0, 0.0], [0.0, -1e-4]])), prior, 3,
+                    jax.random.key(0))  # fmt: skip
 
 
 def test_simulate_under_jit_flags_what_the_checks_cannot_see():
