@@ -317,6 +317,18 @@ def _evaluate_shapes(model, x, u) -> dict[str, tuple]:
         ) from err
     names = ("f(x)", "F", "G", "Q", "h(x)", "H", "R")
     named = dict(zip(names, (f, F, G, Q, h, H, R), strict=True))
+    for name, value in named.items():
+        if not isinstance(value, jax.ShapeDtypeStruct):
+            raise ValueError(
+                f"model: its {name} is a {type(value).__name__}, not an array; return a jax "
+                f"array (jnp.stack, jnp.asarray)"
+            )
+    for name in ("f(x)", "h(x)"):
+        if named[name].ndim == 0:
+            raise ValueError(
+                f"model: its {name} is a scalar; return a vector, of shape (1,) for one entry "
+                f"(x[:1], not x[0])"
+            )
     return {name: tuple(a.shape) for name, a in named.items()}
 
 

@@ -346,7 +346,7 @@ def simulate(
     Covariances whose values are known are checked here (``ValueError``); under ``jit`` a bad
     one shows in :attr:`Simulation.status` instead.
     """
-    from jaxest._checks import check_matrix  # _checks imports this module
+    from jaxest._checks import check_matrix, first_input, model_shapes  # _checks imports this
 
     try:
         steps = operator.index(num_steps)  # a Python, NumPy or concrete JAX integer
@@ -379,6 +379,8 @@ def simulate(
     elif isinstance(model, NonlinearGaussian):
         check_matrix("model.Q", model.Q, psd=True)
         check_matrix("model.R", model.R, psd=True)
+        u0 = None if inputs is None else jax.tree.map(first_input, inputs)
+        model_shapes(model, x0.mean if isinstance(x0, Gaussian) else x0, u0)  # f(x), h(x) arrays
     if isinstance(x0, Gaussian):
         check_matrix("x0.cov", x0.cov, psd=True)
     check_matrix("x0", x0.mean if isinstance(x0, Gaussian) else x0, ndim=1)  # finite

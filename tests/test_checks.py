@@ -314,6 +314,17 @@ def test_nonlinear_model_shapes_checked():
         je.run(
             KalmanFilter(), misread, jnp.zeros((5, 2)), prior=je.Gaussian(jnp.zeros(2), jnp.eye(2))
         )
+    # a scalar h for one measurement gave an IndexError, a list from f an AttributeError, and
+    # simulate took the scalar h (measurements of shape (T,))
+    prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
+    scalar = je.NonlinearGaussian(lambda x: x, lambda x: x[0], jnp.eye(2), jnp.eye(1))
+    listed = je.NonlinearGaussian(lambda x: [x[0], x[1]], lambda x: x[:1], jnp.eye(2), jnp.eye(1))
+    for bad, message in [(scalar, r"^model: its h\(x\) is a scalar"),
+                         (listed, r"^model: its f\(x\) is a list, not an array")]:  # fmt: skip
+        with pytest.raises(ValueError, match=message):
+            je.run(je.EKF(), bad, jnp.zeros((5, 1)), prior=prior)
+    with pytest.raises(ValueError, match=r"^model: its h\(x\) is a scalar"):
+        je.simulate(scalar, prior, 5, jax.random.key(0))
     with pytest.raises(ValueError, match="noise_gain"):
         je.NonlinearGaussian(
             lambda x, u: x,
