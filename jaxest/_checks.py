@@ -234,6 +234,9 @@ def check_precision(model, ys, prior, *, name: str = "prior", **updated_with) ->
     with (``updated_with``, by name): a narrower one (a float32 prior with a float64 model) made
     the estimator's state change dtype after one step, a TypeError from inside the scan."""
     inexact = lambda tree: [a for a in jax.tree.leaves(tree) if eqx.is_inexact_array(a)]
+    if not inexact(prior):  # an integer one changed the scan's carry
+        dtypes = ", ".join(sorted({str(jnp.result_type(a)) for a in jax.tree.leaves(prior)}))
+        raise ValueError(f"{name}: must be real floating point, got {dtypes}")
     own = jnp.result_type(*inexact(prior))
     widths = {"model": jnp.result_type(*inexact(model))} if inexact(model) else {}
     widths["ys"] = jnp.result_type(ys)

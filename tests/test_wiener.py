@@ -420,6 +420,26 @@ def test_bad_arguments_name_the_argument():
     )
     with pytest.raises(ValueError, match="^model.B:"):
         steady_state_gain(with_input)
+    # these ran to an all-NaN result, or failed inside the trace with a TypeError
+    eq13 = dict(initial_values=initial, start="eq13")
+    cases = [
+        (dict(prior=je.Gaussian(jnp.array([jnp.nan, 0.0]), jnp.eye(2))), "^prior.mean: contains"),
+        (dict(initial_values=initial + jnp.nan, start="arbitrary"), "^initial_values: contains"),
+        (dict(initial_values=[[0.0, 0.0], [0.0, 0.0]], start="arbitrary"), "^initial_values: expected an array"),
+        (dict(initial_values=jnp.zeros((2, 2), int), start="arbitrary"), "^initial_values: must be real"),
+        (dict(prior=je.Gaussian(jnp.zeros(2, jnp.float32), jnp.eye(2, dtype=jnp.float32))), "^prior: is float32"),
+        (dict(prior=prior, radius=float("nan"), **eq13), "^radius: must be a number in"),
+    ]  # fmt: skip
+    for options, message in cases:
+        with pytest.raises(ValueError, match=message):
+            wiener_smooth(model, ys, **options)
+    with pytest.raises(ValueError, match="^ys: need more than 3 samples, got 2"):
+        wiener_smooth(model, ys[:2], prior=prior, **eq13)
+    other = steady_state_gain(
+        je.LinearGaussian(0.5 * jnp.eye(3), jnp.ones((1, 3)), jnp.eye(3), jnp.eye(1))
+    )
+    with pytest.raises(ValueError, match="^gain: is for 3 states and 1 measurements"):
+        steady_state_smooth(model, ys, prior=prior, gain=other)
 
 
 @pytest.mark.slow

@@ -156,6 +156,12 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
     def check(self, model, ys, inputs, prior) -> None:
         check_time_invariant(model)
         super().check(model, ys, inputs, prior)
+        if self.gain is not None and jnp.shape(self.gain.K) != jnp.shape(model.H)[::-1]:
+            raise ValueError(
+                f"gain: is for {jnp.shape(self.gain.K)[0]} states and {jnp.shape(self.gain.K)[1]}"
+                f" measurements, the model has {jnp.shape(model.H)[1]} and "
+                f"{jnp.shape(model.H)[0]}"
+            )
         check_complete(ys, "the steady-state gain is for complete measurements (use KalmanFilter)")
 
     def update_predict(self, model, x, factor: SteadyStateFactor, k, y, u):

@@ -111,10 +111,6 @@ class NetworkFilter(AbstractEstimator):
         if not self.dt > 0:
             raise ValueError(f"dt: must be positive (the sample interval), got {self.dt}")
         check_complete(ys, "the gains are designed for every node measuring at every sample")
-        if not jnp.issubdtype(jnp.result_type(prior.mean), jnp.floating):
-            raise ValueError(
-                f"prior.mean: must be real floating point, got {jnp.result_type(prior.mean)}"
-            )
         check_precision(model, ys, prior.mean, name="prior.mean", gains=self.gains)
 
     def check_steps(self, model, first: int, count: int) -> None:

@@ -31,9 +31,16 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-from jaxest._checks import check_complete, check_measurements
+from jaxest._checks import (
+    check_complete,
+    check_gaussian_prior,
+    check_matrix,
+    check_measurements,
+    check_precision,
+)
 from jaxest._priors import Gaussian
 from jaxest.filters.steady_state import SteadyStateGain, steady_state_gain
 from jaxest.linalg import working_precision_by_default
@@ -238,16 +245,23 @@ def wiener_smooth(
         raise ValueError(f"ys: expected shape (T, {m}), got {jnp.shape(ys)}")
     check_measurements(ys)  # before optimal_start's jit, inside which the values are unknown
     check_complete(ys, "the Wiener smoother's lagged sums (eq 10) need every sample")
-    if start != "optimal" and (initial_values is None or jnp.shape(initial_values) != (n, n)):
-        raise ValueError(
-            f"initial_values: start={start!r} needs an ({n}, {n}) array x(0|N)..x({n - 1}|N)"
-        )
+    if jnp.shape(ys)[0] <= n + 1:  # before optimal_start, which failed inside its trace
+        raise ValueError(f"ys: need more than {n + 1} samples, got {jnp.shape(ys)[0]}")
+    if start != "optimal":
+        if initial_values is None or np.shape(initial_values) != (n, n):
+            raise ValueError(
+                f"initial_values: start={start!r} needs an ({n}, {n}) array x(0|N)..x({n - 1}|N)"
+            )
+        check_matrix("initial_values", initial_values, (n, n))  # an array, finite
+        check_precision(model, ys, initial_values, name="initial_values")
+    if start == "eq13" and not (isinstance(radius, int | float) and 0 < radius < 1):
+        raise ValueError(f"radius: must be a number in (0, 1), got {radius!r}")
     if start == "arbitrary" and not end_term:
         return smoother.smooth(ys, initial_values, None)
-    if prior is None or jnp.shape(prior.mean) != (n,):
-        raise ValueError(
-            f"prior: start={start!r} needs a Gaussian prior on x(0), mean shape ({n},)"
-        )
+    if prior is None:
+        raise ValueError(f"prior: start={start!r} needs a Gaussian prior on x(0)")
+    check_gaussian_prior(prior, n)
+    check_precision(model, ys, prior)
     optimal, final_innovations = smoother.optimal_start(ys, prior.mean)
     x0 = {"arbitrary": initial_values, "optimal": optimal}.get(start)
     if start == "eq13":
