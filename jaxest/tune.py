@@ -25,6 +25,7 @@ import numpy as np
 import optax
 
 from jaxest._checks import (
+    check_key,
     check_matrix,
     check_measurements,
     check_nonnegative_int,
@@ -391,9 +392,13 @@ def _batching_alarm_vmap(axis_size, in_batched, value):
     return value, in_batched[0]
 
 
-def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool | None, field: str):
+def _over_runs(
+    estimator, ys, inputs, prior, key, save: SaveAt, checkpoint: bool | None, field: str
+):
     """``model -> result.<field>`` of :func:`~jaxest.run` on every run of the batch ``ys``
-    (runs, T, m) under one ``vmap``: what the losses below are made of."""
+    (runs, T, m) under one ``vmap``: what the losses below are made of. Run i draws with
+    ``jax.random.split(key, runs)[i]`` (``key``: ``None`` for estimators that do not sample), the
+    same keys at every evaluation."""
     if np.ndim(ys) != 3:
         raise ValueError(
             f"ys: expected a batch of shape (runs, T, m), got {np.shape(ys)} (one sequence: "
@@ -401,35 +406,46 @@ def _over_runs(estimator, ys, inputs, prior, save: SaveAt, checkpoint: bool | No
         )
     # the runs' values are tracers under the vmap below: checked here, as run would one of them
     check_measurements(jnp.reshape(ys, (-1, np.shape(ys)[-1])))
+    if key is not None:
+        check_key("key", key)
+    keys = None if key is None else jax.random.split(key, np.shape(ys)[0])
 
     def values(model):
-        def one(y, u):
+        def one(y, u, k):
             result = run(
-                estimator, model, y, prior=prior, inputs=u, save=save, checkpoint=checkpoint
-            )
+                estimator, model, y, prior=prior, inputs=u, key=k, save=save,
+                checkpoint=checkpoint,
+            )  # fmt: skip
             return getattr(result, field)
 
-        return jax.vmap(one)(ys, inputs)
+        return jax.vmap(one)(ys, inputs, keys)
 
     return values
 
 
-def neg_loglik(estimator, ys, *, prior, inputs=None, checkpoint: bool | None = None) -> Callable:
+def neg_loglik(
+    estimator, ys, *, prior, inputs=None, key=None, checkpoint: bool | None = None
+) -> Callable:
     """Loss: minus the mean log-likelihood per run and step of a batch ``ys`` (runs, T, m).
 
     Only the log-likelihood is kept of each run (``SaveAt(fields=())``): no per-step arrays.
+    ``key``: for an estimator that samples (:class:`~jaxest.ParticleFilter`), run i draws with
+    ``jax.random.split(key, runs)[i]``, the same at every evaluation (common random numbers), so
+    the loss is a deterministic function of the model that an optimiser can descend.
     ``checkpoint``: as :func:`~jaxest.run`'s (``None``: the estimator's default).
     """
-    logliks = _over_runs(estimator, ys, inputs, prior, SaveAt(fields=()), checkpoint, "loglik")
+    save = SaveAt(fields=())
+    logliks = _over_runs(estimator, ys, inputs, prior, key, save, checkpoint, "loglik")
     return lambda model: -jnp.mean(logliks(model)) / ys.shape[1]
 
 
 def supervised_mse(
-    estimator, ys, states, *, prior, inputs=None, checkpoint: bool | None = None
+    estimator, ys, states, *, prior, inputs=None, key=None, checkpoint: bool | None = None
 ) -> Callable:
     """Loss: mean squared error of the filtered means against known true ``states`` (runs, T, n).
-    ``checkpoint``: as :func:`~jaxest.run`'s."""
-    means = _over_runs(estimator, ys, inputs, prior, SaveAt(fields=("mean",)), checkpoint, "mean")
+    ``key`` and ``checkpoint``: as :func:`neg_loglik`'s."""
+    save = SaveAt(fields=("mean",))
+    means = _over_runs(estimator, ys, inputs, prior, key, save, checkpoint, "mean")
 
     def loss(model):
         estimates = means(model)

@@ -387,6 +387,28 @@ def test_run_requires_a_key_and_checks_the_model():
                key=jax.random.PRNGKey(0))  # fmt: skip
 
 
+def test_the_losses_take_a_key_for_a_filter_that_samples():
+    """neg_loglik and supervised_mse had no key=, so no particle filter could be tuned with them
+    (the README says every entry point takes key=): run i draws with split(key, runs)[i], the
+    same at every evaluation."""
+    model = scalar_model()
+    sims = je.monte_carlo(lambda k: je.simulate(model, PRIOR, 6, k), jax.random.key(0), 2)
+    pf, key = je.ParticleFilter(32), jax.random.key(1)
+    loss = je.neg_loglik(pf, sims.y, prior=PRIOR, key=key)
+    by_hand = [
+        je.run(pf, model, y, prior=PRIOR, key=k, save=SAVE_NONE).loglik
+        for y, k in zip(sims.y, jax.random.split(key, 2), strict=True)
+    ]
+    value, grad = jax.jit(jax.value_and_grad(loss))(model)
+    np.testing.assert_allclose(value, -np.mean(by_hand) / 6, rtol=1e-12)
+    assert np.isfinite(float(grad.R[0, 0]))
+    np.testing.assert_allclose(loss(model), value, rtol=1e-12)  # the same draws again
+    mse = je.supervised_mse(pf, sims.y, sims.states, prior=PRIOR, key=key)
+    assert np.isfinite(float(mse(model)))
+    with pytest.raises(ValueError, match="^key: ParticleFilter samples"):
+        je.neg_loglik(pf, sims.y, prior=PRIOR)(model)
+
+
 def test_particles_are_saved_on_request_and_resume():
     model = scalar_model()
     ys = je.simulate(model, PRIOR, 8, jax.random.PRNGKey(0)).y
