@@ -1,27 +1,6 @@
-"""The estimator protocol: abstract types every filter, smoother pass and observer subclasses.
-
-An estimator is an ``eqx.Module`` (its hyperparameters are fields) with
-
-- ``init(model, prior) -> state``;
-- ``step(model, state, k, y_k, u_k, key_k) -> (state, output)``, pure: no Python branching on
-  values, so it runs under ``jit``, ``vmap``, ``grad`` and inside ``lax.scan``. ``k`` is the
-  step index and ``key_k`` this step's PRNG key (``None`` unless the caller gave ``key=``):
-  the driver owns time and randomness, states hold neither;
-- ``result(outputs, final_state) -> result``: packs the stacked outputs (those the caller chose
-  to save, the others ``None``) into the estimator's result Module;
-- ``check(model, ys, inputs, prior)``: argument checks run before anything is traced;
-- ``check_steps(model, first, count)``: that the arrays read at the step index (time-varying
-  matrices) cover the steps of a run, resumed runs included (``check`` is skipped there).
-
-Each step's ``output`` has an integer ``status`` field (bits of a :class:`~jaxest.StatusFlag`).
-:func:`jaxest.run` drives any estimator over a sequence; users with their own loop (closed-loop
-control, online use) call ``step`` themselves.
-
-An estimator whose steps compose associatively subclasses :class:`AbstractAssociativeEstimator`
-instead: it describes each step as an element and gives the combination rule, and ``run`` then
-uses :func:`jaxest.scan.associative_scan` (O(log T) depth) -- its ``init``/``step`` come from the same
-pieces, so the sequential and parallel paths share one implementation.
-"""
+"""The estimator protocol: abstract types every filter, smoother pass and observer subclasses
+(:class:`AbstractEstimator` has the protocol, :class:`AbstractAssociativeEstimator` its
+associative form, :class:`AbstractResult` what every result holds)."""
 
 from __future__ import annotations
 
@@ -64,7 +43,37 @@ class AbstractResult(eqx.Module):
 
 
 class AbstractEstimator(eqx.Module):
-    """Root of every estimator (module docstring)."""
+    """Root of every estimator: an ``eqx.Module`` whose fields are its hyperparameters, with
+
+    - ``init(model, prior) -> state``: the state before the first measurement. It gets no key:
+      an estimator that samples (an ensemble) draws in ``step``, from that step's key;
+    - ``step(model, state, k, y_k, u_k, key_k) -> (state, output)``, pure: no Python branching
+      on values, so it runs under ``jit``, ``vmap``, ``grad`` and inside ``lax.scan``. ``k`` is
+      the step index and ``key_k`` this step's PRNG key (``None`` unless the caller gave
+      ``key=``): the driver owns time and randomness, states hold neither. The state it returns
+      has the structure, shapes and dtypes of the one it was given (the run carries it from
+      step to step). ``output`` is a Module (or dataclass) of this step's arrays, whose
+      fields :class:`~jaxest.SaveAt` chooses from, with a ``status`` field: an int32 scalar of
+      the bits of a :class:`~jaxest.StatusFlag` (:func:`~jaxest.status_where` and
+      :func:`~jaxest.finite_status` make one), 0 where the step went well;
+    - ``result(outputs, final_state) -> result``: packs the stacked outputs (those the caller
+      chose to save, the others ``None``) into the estimator's :class:`AbstractResult`;
+    - ``check(model, ys, inputs, prior)``: argument checks run before anything is traced
+      (``ValueError`` naming the argument);
+    - ``check_steps(model, first, count)``: that the arrays read at the step index (time-varying
+      matrices) cover the steps of a run, resumed runs included (``check`` is skipped there).
+
+    :func:`jaxest.run` drives any estimator over a sequence, and names the part of this protocol
+    a ``step`` breaks where the run fails inside its trace; users with their own loop
+    (closed-loop control, online use) call ``step`` themselves. docs/estimators.md writes an
+    ensemble Kalman filter this way.
+
+    An estimator whose steps compose associatively subclasses
+    :class:`AbstractAssociativeEstimator` instead: it describes each step as an element and gives
+    the combination rule, and ``run`` then uses :func:`jaxest.scan.associative_scan` (O(log T)
+    depth); its ``init``/``step`` come from the same pieces, so the sequential and parallel paths
+    share one implementation.
+    """
 
     #: True for estimators that sample: ``run`` then requires ``key=``
     needs_key: ClassVar[bool] = False

@@ -192,13 +192,66 @@ def run(
     first = concrete_k0(k0, "ys[0]")
     if first is not None:  # also when resuming, which skips the estimator's checks
         estimator.check_steps(model, first, np.shape(ys)[0])
-    result = _run(
-        estimator, model, jnp.asarray(ys), inputs, prior, state, k0, key,
-        save or SaveAt(), parallel, checkpoint,
-    )  # fmt: skip
+    try:
+        result = _run(
+            estimator, model, jnp.asarray(ys), inputs, prior, state, k0, key,
+            save or SaveAt(), parallel, checkpoint,
+        )  # fmt: skip
+    except (TypeError, AttributeError, ValueError) as error:
+        if not parallel:
+            check_step_protocol(estimator, model, jnp.asarray(ys), inputs, prior, state, key, error)
+        raise
     if throw:
         result = raise_if_failed(result)
     return result
+
+
+def check_step_protocol(estimator, model, ys, inputs, prior, state, key, error) -> None:
+    """Where a sequential run failed inside its trace (``error``), a ``ValueError`` saying which
+    part of the protocol (:class:`~jaxest.AbstractEstimator`) the estimator's ``step`` broke, as
+    far as one abstract step shows: JAX's own errors name a scan carry or a tracer's attribute.
+    Returns where the step keeps the protocol (the caller re-raises ``error``)."""
+    name = type(estimator).__name__
+
+    def one_step():
+        first = estimator.init(model, prior) if state is None else state
+        u = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
+        k = None if key is None else jax.random.fold_in(key, 0)
+        return first, estimator.step(model, first, jnp.zeros((), jnp.int32), ys[0], u, k)
+
+    try:
+        first, stepped = jax.eval_shape(one_step)
+    except Exception:  # noqa: BLE001 - the step fails on its own: error says more
+        return
+    if not (isinstance(stepped, tuple) and len(stepped) == 2):
+        got = f"a tuple of {len(stepped)}" if isinstance(stepped, tuple) else type(stepped).__name__
+        raise ValueError(
+            f"estimator: {name}.step must return (state, output), got {got}"
+        ) from error
+    new_state, output = stepped
+    status = getattr(output, "status", None)
+    if not isinstance(status, jax.ShapeDtypeStruct):
+        raise ValueError(
+            f"estimator: {name}.step's output has no array field status (the step's flags)"
+        ) from error
+    if status.shape != () or status.dtype != jnp.int32:
+        raise ValueError(
+            f"estimator: {name}.step's output.status must be an int32 scalar (jaxest.status_where"
+            f" and finite_status make one), got {status.dtype}{list(status.shape)}"
+        ) from error
+    before, after = (jax.tree_util.tree_flatten_with_path(s) for s in (first, new_state))
+    if before[1] != after[1]:
+        raise ValueError(
+            f"estimator: {name}.step returned a state of another structure than it was given "
+            f"({before[1]} -> {after[1]}); the run carries the state from step to step"
+        ) from error
+    for (path, old), (_, new) in zip(before[0], after[0], strict=True):
+        if (old.shape, old.dtype) != (new.shape, new.dtype):
+            raise ValueError(
+                f"estimator: {name}.step changed its state{jax.tree_util.keystr(path)} from "
+                f"{old.dtype}{list(old.shape)} to {new.dtype}{list(new.shape)}; the run carries "
+                f"the state from step to step, so it keeps its shapes and dtypes"
+            ) from error
 
 
 def raise_if_failed(result: AbstractResult):

@@ -352,3 +352,52 @@ def test_checkpoint_is_checked_before_tracing():
         je.ParallelKalmanFilter(), model, ys, prior=PRIOR, parallel=False, checkpoint=True
     )
     np.testing.assert_allclose(checkpointed.loglik, sequential.loglik, rtol=1e-12)
+
+
+class FloatStatus(AlphaBetaTracker):
+    def step(self, model, state, k, y, u, key):
+        state, output = super().step(model, state, k, y, u, key)
+        return state, AlphaBetaOutput(output.mean, output.status.astype(float))
+
+
+class GrowingState(AlphaBetaTracker):
+    def step(self, model, state, k, y, u, key):
+        state, output = super().step(model, state, k, y, u, key)
+        return AlphaBetaState(jnp.stack([state.position] * 2), state.velocity), output
+
+
+class ThreeOutputs(AlphaBetaTracker):
+    def step(self, model, state, k, y, u, key):
+        return (*super().step(model, state, k, y, u, key), None)
+
+
+def test_a_step_that_breaks_the_protocol_is_named():
+    """A float or int64 status, a state that changes shape, a step that returns three things:
+    JAX's errors from inside the scan named a carry ("carry[0]") or bitwise_or's dtype."""
+    model, ys = constant_velocity(), jnp.zeros((5, 1))
+    for estimator, message in [
+        (FloatStatus(), r"FloatStatus.step's output.status must be an int32 scalar .*float64\[\]"),
+        (GrowingState(), r"GrowingState.step changed its state.position from float64\[\] to "
+                         r"float64\[2\]"),
+        (ThreeOutputs(), r"ThreeOutputs.step must return \(state, output\), got a tuple of 3"),
+    ]:  # fmt: skip
+        with pytest.raises(ValueError, match="^estimator: " + message):
+            je.run(estimator, model, ys, prior=PRIOR)
+
+
+@pytest.mark.slow
+def test_the_documented_ensemble_filter_runs_and_approaches_the_kalman_filter():
+    """docs/estimators.md's code, run as written: its ensemble Kalman filter through run,
+    monte_carlo and neg_loglik with a key, within half a standard deviation of the Kalman filter
+    at 2000 members."""
+    import re
+    from pathlib import Path
+
+    page = (Path(__file__).resolve().parents[1] / "docs" / "estimators.md").read_text()
+    namespace = {"__name__": "docs_estimators"}
+    exec(compile("\n".join(re.findall(r"```python\n(.*?)```", page, re.S)), "estimators.md", "exec"),
+         namespace)  # fmt: skip
+    assert float(namespace["error"]) < 0.5
+    assert abs(float(namespace["ensemble"].loglik - namespace["kalman"].loglik)) < 2.0
+    assert namespace["runs"].shape == (20, 100, 2) and int(namespace["ensemble"].any_status) == 0
+    assert np.isfinite(float(jax.grad(namespace["loss"])(namespace["model"]).R[0, 0]))
