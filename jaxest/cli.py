@@ -8,6 +8,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -284,6 +285,23 @@ def _run_in_processes(
     return index, failed
 
 
+def _check_data(directory: Path, names) -> None:
+    """``--data`` a directory holding the records the chosen studies read (the svd-ekf study's):
+    a missing file was found after the study's simulated part, with a traceback."""
+    from jaxest.systems import flight_data
+
+    if not directory.is_dir():
+        raise SystemExit(f"--data: {directory} is not a directory. {flight_data.DOWNLOAD_HINT}")
+    if "svd-ekf" in names:
+        wanted = [*flight_data.ATTAS_FILES.values(), flight_data.HFB320_FILE]
+        missing = [name for name in wanted if not (directory / name).is_file()]
+        if missing:
+            raise SystemExit(
+                f"--data: {directory} lacks {', '.join(missing)} (the svd-ekf study's records). "
+                f"{flight_data.DOWNLOAD_HINT}"
+            )
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     names = list(studies.STUDIES) if "all" in args.study else args.study
@@ -295,6 +313,12 @@ def main(argv: list[str] | None = None) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
     except OSError as error:
         raise SystemExit(f"--out: cannot create {args.out} ({error.strerror})") from None
+    try:  # a directory that exists but cannot be written failed inside the first study
+        tempfile.TemporaryFile(dir=args.out).close()
+    except OSError as error:
+        raise SystemExit(f"--out: cannot write in {args.out} ({error.strerror})") from None
+    if args.data is not None:
+        _check_data(args.data, names)
     if args.worker is not None:  # one study for a parent that keeps the index
         write_json(args.worker, _run_here(names, args, {}))
         return 0

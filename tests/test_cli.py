@@ -4,6 +4,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import jaxlib
 import pytest
@@ -33,6 +34,22 @@ def test_an_output_folder_that_cannot_be_made_is_named(tmp_path):
     (tmp_path / "file").write_text("")  # was a NotADirectoryError traceback
     with pytest.raises(SystemExit, match="^--out: cannot create .*Not a directory"):
         cli.main(["reproduce", "filters", "--quick", "--out", str(tmp_path / "file" / "sub")])
+
+
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs Linux's /proc")
+def test_an_output_folder_that_cannot_be_written_and_bad_data_are_named(tmp_path):
+    """A PermissionError traceback from inside the first study; --data that is not a directory
+    (a ValueError traceback) or lacks the svd-ekf study's records (found after its simulated
+    part, 22 s into --quick, with a traceback and a partial folder)."""
+    with pytest.raises(SystemExit, match="^--out: cannot write in /proc"):
+        cli.main(["reproduce", "wiener", "--quick", "--out", "/proc"])
+    out = str(tmp_path / "out")
+    with pytest.raises(SystemExit, match="^--data: .*nowhere is not a directory"):
+        cli.main(
+            ["reproduce", "svd-ekf", "--quick", "--out", out, "--data", str(tmp_path / "nowhere")]
+        )
+    with pytest.raises(SystemExit, match="^--data: .* lacks fAttasElv1_pqrDot.asc, "):
+        cli.main(["reproduce", "svd-ekf", "--quick", "--out", out, "--data", str(tmp_path)])
 
 
 @pytest.mark.slow
