@@ -283,10 +283,11 @@ def advance_channels(outputs, dt: float, delays, max_delays) -> jax.Array:
             f"max_delays: expected {outputs.shape[1]} non-negative numbers, got {max_delays}"
         )
     if not isinstance(delays, jax.core.Tracer):
-        beyond = ~((0 <= np.asarray(delays)) & (np.asarray(delays) <= max_delays))
+        given, rounding = np.asarray(delays, np.float64), 1e-6 * dt  # 5 * 0.04 > 0.2, float32 0.2
+        beyond = ~((-rounding <= given) & (given <= max_delays + rounding))
         if np.any(beyond):
             raise ValueError(
-                f"delays: must lie in [0, max_delays]; got {np.asarray(delays)} against "
+                f"delays: must lie in [0, max_delays]; got {given} against "
                 f"{max_delays} (beyond the limit the samples past the record are not marked "
                 f"missing but repeated)"
             )
