@@ -268,14 +268,14 @@ def fit_em(
     dynamax's ``fit_em`` reports it), non-decreasing in i; ``status[i]`` the iteration's
     :data:`EMStatus` flags (``result.ok``: all OK).
     """
-    _check(model, ys, prior, num_iters, fixed, inputs)
+    _check(model, ys, prior, num_iters, fixed, inputs, parallel)
     ys = jnp.asarray(ys)
     inputs = None if inputs is None else jnp.asarray(inputs)
     result = _fit_em(model, prior, ys, inputs, num_iters, frozenset(fixed), parallel)
     return raise_if_failed(result) if throw else result
 
 
-def _check(model, ys, prior, num_iters, fixed, inputs):
+def _check(model, ys, prior, num_iters, fixed, inputs, parallel):
     if not isinstance(model, LinearGaussian):
         raise ValueError(f"model: fit_em needs a jaxest.LinearGaussian, got {type(model).__name__}")
     if model.G is not None:
@@ -295,7 +295,8 @@ def _check(model, ys, prior, num_iters, fixed, inputs):
         raise ValueError(f"fixed: expected names from {PARAMETERS}, got {fixed!r}")
     check_positive_int("num_iters", num_iters)
     check_gaussian_prior(prior, model.F.shape[-1])
-    check_gaussian_arguments(model, ys, inputs, prior)
+    # the parallel E-step's square-root filter factors Q: a singular one gave NaN (status 13)
+    check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel)
     check_complete(ys, "fit_em needs complete measurements")
     dynamics = ({"F", "Q"} | ({"B"} if model.B is not None else set())) - set(fixed)
     if dynamics and np.shape(ys)[0] < 2:
