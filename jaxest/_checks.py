@@ -238,7 +238,8 @@ def check_precision(model, ys, prior, *, name: str = "prior", **updated_with) ->
         dtypes = ", ".join(sorted({str(jnp.result_type(a)) for a in jax.tree.leaves(prior)}))
         raise ValueError(f"{name}: must be real floating point, got {dtypes}")
     own = jnp.result_type(*inexact(prior))
-    widths = {"model": jnp.result_type(*inexact(model))} if inexact(model) else {}
+    model_arrays = inexact(model)
+    widths = {"model": jnp.result_type(*model_arrays)} if model_arrays else {}
     widths["ys"] = jnp.result_type(ys)
     widths |= {other: jnp.result_type(a) for other, a in updated_with.items()}
     if jnp.result_type(own, *widths.values()) != own:

@@ -290,8 +290,10 @@ def _check_data(directory: Path, names) -> None:
     a missing file was found after the study's simulated part, with a traceback."""
     from jaxest.systems import flight_data
 
-    if not directory.is_dir():
-        raise SystemExit(f"--data: {directory} is not a directory. {flight_data.DOWNLOAD_HINT}")
+    try:
+        flight_data.find_data_dir(directory)
+    except ValueError as error:  # "data: ... is not a directory ..."
+        raise SystemExit(f"--{error}") from None
     if "svd-ekf" in names:
         wanted = [*flight_data.ATTAS_FILES.values(), flight_data.HFB320_FILE]
         missing = [name for name in wanted if not (directory / name).is_file()]

@@ -359,6 +359,7 @@ def simulate(
         raise ValueError(f"num_steps: must not be negative, got {steps}")
     if not isinstance(x0, Gaussian):
         x0 = jnp.asarray(x0)  # an initial state given as a list or a number, too
+    start = x0.mean if isinstance(x0, Gaussian) else x0
     if isinstance(model, LinearGaussian):
         check_matrix("model.F", model.F, square=True)
     check_inputs_used(model, inputs)
@@ -367,9 +368,8 @@ def simulate(
         raise ValueError(f"inputs: expected a leading time axis of num_steps = {steps}")
     if isinstance(model, LinearGaussian):
         n = model.F.shape[-1]
-        x0_shape = (x0.mean if isinstance(x0, Gaussian) else x0).shape
-        if x0_shape != (n,):
-            raise ValueError(f"x0: expected shape ({n},) for the model's state, got {x0_shape}")
+        if start.shape != (n,):
+            raise ValueError(f"x0: expected shape ({n},) for the model's state, got {start.shape}")
         check_matrix("model.H", model.H, (None, n))
         if model.G is not None:
             check_matrix("model.G", model.G, (n, None))
@@ -380,10 +380,10 @@ def simulate(
         check_matrix("model.Q", model.Q, psd=True)
         check_matrix("model.R", model.R, psd=True)
         u0 = None if inputs is None else jax.tree.map(first_input, inputs)
-        model_shapes(model, x0.mean if isinstance(x0, Gaussian) else x0, u0)  # f(x), h(x) arrays
+        model_shapes(model, start, u0)  # f(x), h(x) arrays
     if isinstance(x0, Gaussian):
         check_matrix("x0.cov", x0.cov, psd=True)
-    check_matrix("x0", x0.mean if isinstance(x0, Gaussian) else x0, ndim=1)  # finite
+    check_matrix("x0", start, ndim=1)  # finite
     return _simulate(model, x0, steps, key, inputs, process_noise, measurement_noise)
 
 

@@ -33,7 +33,7 @@ from jaxest._checks import (
     is_concrete,
 )
 from jaxest._run import SaveAt, run
-from jaxest._status import Status, status_where
+from jaxest._status import Status, finite_status, status_where
 
 if TYPE_CHECKING:
     import optimistix as optx
@@ -246,20 +246,16 @@ def _optax_steps(optimizer, objective, theta0, num_steps):
     return _finite_or_last_finite(theta, losses, last_finite)
 
 
-def _all_finite(tree) -> jax.Array:
-    return jnp.all(jnp.array([jnp.all(jnp.isfinite(a)) for a in jax.tree.leaves(tree)]))
-
-
 def _where_finite(checked, new, old):
     """``new`` where every leaf of ``checked`` is finite, else ``old``."""
-    finite = _all_finite(checked)
+    finite = finite_status(*jax.tree.leaves(checked)) == 0
     return jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, old)
 
 
 def _finite_or_last_finite(theta, losses, last_finite):
     """``theta`` and ``Status.OK`` where it and every loss are finite, else the last iterate
     whose loss was finite and ``NONFINITE``."""
-    fine = _all_finite((theta, losses))
+    fine = finite_status(*jax.tree.leaves(theta), losses) == 0
     theta = jax.tree.map(lambda a, b: jnp.where(fine, a, b), theta, last_finite)
     return theta, losses, status_where(~fine, Status.NONFINITE)
 

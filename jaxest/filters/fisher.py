@@ -76,6 +76,9 @@ from jaxest.filters.base import FilterResult
 from jaxest.filters.common import masked_measurement
 from jaxest.linalg import chol_inverse, cholesky, mm, mv, symmetrize
 
+#: the fields of the filter's result that :func:`disturbance_smooth` reads
+NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov")
+
 
 class Scores(eqx.Module):
     """Eq (3) at every step k: what (2) multiplies the parameters' tangents by."""

@@ -31,10 +31,9 @@ from jaxest.filters.common import (
     step_status,
     whitened_innovation,
 )
-from jaxest.filters.fisher import fisher_loglik
+from jaxest.filters.fisher import NEEDED, fisher_loglik
 from jaxest.linalg import cho_solve_lower, chol_inverse, cholesky, inv_spd, symmetrize
 from jaxest.models import LinearGaussian
-from jaxest.smoothers.rts import NEEDED
 
 
 class KalmanFilter(AbstractGaussianFilter):
