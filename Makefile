@@ -7,22 +7,25 @@ OUT ?= results
 
 .PHONY: reproduce test test-fast lint format clean docs docs-check wheel-check
 
+# The venv's pip installs uv, and uv installs jaxest and its dependencies: from a fresh clone, with
+# no cache, 32 s against pip's 78 s (2026-12-01, `make test`'s dev extras, byte-compiled as pip
+# does: every test process would otherwise compile the modules it imports).
+INSTALL = $(BIN)/pip install --quiet uv && $(BIN)/uv pip install --quiet --python $(BIN)/python \
+	--compile-bytecode
+
 $(BIN)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e .
+	$(INSTALL) -e .
 	touch $@
 
 $(BIN)/.installed-dev: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e ".[dev]"
+	$(INSTALL) -e ".[dev]"
 	touch $@ $(BIN)/.installed
 
 $(BIN)/.installed-docs: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e ".[dev,docs]"
+	$(INSTALL) -e ".[dev,docs]"
 	$(BIN)/python -m ipykernel install --prefix $(VENV) --name python3 > /dev/null
 	touch $@ $(BIN)/.installed-dev $(BIN)/.installed
 
