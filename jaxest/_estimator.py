@@ -60,6 +60,8 @@ class AbstractEstimator(eqx.Module):
       chose to save, the others ``None``) into the estimator's :class:`AbstractResult`;
     - ``check(model, ys, inputs, prior)``: argument checks run before anything is traced
       (``ValueError`` naming the argument);
+    - ``resume(model, state)``: the state to carry on from a given one (``run(..., state=...)``),
+      which may come from another estimator (default: as it is);
     - ``check_steps(model, first, count)``: that the arrays read at the step index (time-varying
       matrices) cover the steps of a run, resumed runs included (``check`` is skipped there).
 
@@ -100,6 +102,12 @@ class AbstractEstimator(eqx.Module):
 
     def check(self, model, ys, inputs, prior) -> None:
         """Raise ``ValueError`` naming the argument for malformed arguments (default: none)."""
+
+    def resume(self, model, state):
+        """The state this estimator carries on from ``state`` (``run(..., state=...)``), which
+        may be another estimator's final state: ``state`` as it is (default). The Gaussian
+        filters convert one another's states here, whatever form holds P."""
+        return state
 
     def check_steps(self, model, first: int, count: int) -> None:
         """Raise ``ValueError`` where an array read at the time index (a time-varying matrix of

@@ -80,7 +80,7 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
     else:
         # one key per step index, so a run resumed at k0 draws what one run would have drawn
         keys = None if key is None else jax.vmap(jax.random.fold_in, (None, 0))(key, ks)
-        first = estimator.init(model, prior) if state is None else state
+        first = estimator.init(model, prior) if state is None else estimator.resume(model, state)
 
         def body(carry, args):
             state, any_status = carry
@@ -214,7 +214,7 @@ def check_step_protocol(estimator, model, ys, inputs, prior, state, key, error) 
     name = type(estimator).__name__
 
     def one_step():
-        first = estimator.init(model, prior) if state is None else state
+        first = estimator.init(model, prior) if state is None else estimator.resume(model, state)
         u = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
         k = None if key is None else jax.random.fold_in(key, 0)
         return first, estimator.step(model, first, jnp.zeros((), jnp.int32), ys[0], u, k)
@@ -244,6 +244,7 @@ def check_step_protocol(estimator, model, ys, inputs, prior, state, key, error) 
         raise ValueError(
             f"estimator: {name}.step returned a state of another structure than it was given "
             f"({before[1]} -> {after[1]}); the run carries the state from step to step"
+            + ("" if state is None else f" (is state= a state of {name}'s kind?)")
         ) from error
     for (path, old), (_, new) in zip(before[0], after[0], strict=True):
         if (old.shape, old.dtype) != (new.shape, new.dtype):

@@ -215,6 +215,34 @@ def test_resume_from_final_state_equals_one_run(Filter):
     np.testing.assert_allclose(rest.loglik, whole.loglik, rtol=1e-12)
 
 
+def test_a_filter_resumes_from_another_filters_state():
+    """Each Gaussian filter takes another's final state, whatever form holds P there (it raised
+    a TypeError or AttributeError); the particle filter draws its particles from a Gaussian
+    filter's predicted state; states of another kind are named."""
+    model, ys = linear_problem()
+    whole = je.run(je.KalmanFilter(), model, ys, prior=PRIOR)
+    handovers = [(je.KalmanFilter(), je.SquareRootKF()), (je.SquareRootKF(), je.SVDEKF()),
+                 (je.SVDEKF(), je.InformationFilter()), (je.InformationFilter(), je.UKF()),
+                 (je.UKF(form="sqrt"), je.ParallelKalmanFilter()),
+                 (je.KalmanFilter(), je.ParallelKalmanFilter(square_root=False))]  # fmt: skip
+    for before, after in handovers:
+        first = je.run(before, model, ys[:25], prior=PRIOR)
+        rest = je.run(after, model, ys[25:], state=first.final_state, k0=25)
+        np.testing.assert_allclose(rest.mean, whole.mean[25:], rtol=1e-9, atol=1e-10)
+        np.testing.assert_allclose(rest.loglik, whole.loglik, rtol=1e-10)
+    first = je.run(je.SquareRootKF(), model, ys[:25], prior=PRIOR)
+    particles = je.run(je.ParticleFilter(4000), model, ys[25:], state=first.final_state, k0=25,
+                       key=jax.random.key(0))  # fmt: skip
+    spread = np.sqrt(np.diagonal(np.asarray(whole.cov[25:]), axis1=1, axis2=2))
+    assert np.max(np.abs(particles.mean - whole.mean[25:]) / spread) < 0.2
+    assert abs(float(particles.loglik - whole.loglik)) < 1.0
+    with pytest.raises(ValueError, match="^state: KalmanFilter resumes from a Gaussian"):
+        je.run(je.KalmanFilter(), model, ys[50:], state=particles.final_state, k0=50)
+    with pytest.raises(ValueError, match="^state: holds 4000 particles, this ParticleFilter 10"):
+        je.run(je.ParticleFilter(10), model, ys[50:], state=particles.final_state, k0=50,
+               key=jax.random.key(1))  # fmt: skip
+
+
 class NoisyTracker(AlphaBetaTracker):
     """An estimator that samples: it jitters its estimate with the step's key."""
 

@@ -98,6 +98,20 @@ class InformationMatrix(AbstractCovarianceFactor):
         return chol_inverse(cholesky(self.info))
 
 
+def resume_gaussian(state, factor_type: type[AbstractCovarianceFactor], name: str):
+    """``state``, a Gaussian filter's :class:`GaussianState`, with P held as ``factor_type``
+    (converted through P where another filter held it otherwise); ``name``: the resuming
+    filter's, for the ``ValueError`` any other state gets."""
+    if not isinstance(state, GaussianState):
+        raise ValueError(
+            f"state: {name} resumes from a Gaussian filter's state (its result.final_state), "
+            f"got {type(state).__name__}"
+        )
+    if not isinstance(state.factor, factor_type):
+        return GaussianState(state.mean, factor_type.from_cov(state.factor.cov), state.loglik)
+    return state
+
+
 class GaussianState(eqx.Module):
     """x(k|k-1), P(k|k-1) in the filter's factor, and log p(y_0, ..., y_{k-1})."""
 
@@ -217,7 +231,12 @@ class AbstractGaussianFilter(AbstractEstimator):
         zero = jnp.zeros((), jnp.result_type(prior.mean))
         return GaussianState(prior.mean, self.factor_type.from_cov(prior.cov), zero)
 
+    def resume(self, model, state) -> GaussianState:
+        """Another Gaussian filter's state with P in this filter's form (``factor_type``)."""
+        return resume_gaussian(state, self.factor_type, type(self).__name__)
+
     def step(self, model, state: GaussianState, k, y, u, key=None):
+        state = self.resume(model, state)
         x_next, factor_next, output = self.update_predict(model, state.mean, state.factor, k, y, u)
         output = output.with_covariances_checked()
         return GaussianState(x_next, factor_next, state.loglik + output.loglik), output

@@ -98,6 +98,7 @@ from jaxest.filters.base import (
     Covariance,
     FilterResult,
     GaussianState,
+    resume_gaussian,
 )
 from jaxest.filters.common import gaussian_loglik, masked_measurement
 from jaxest.filters.kalman import KalmanFilter
@@ -345,11 +346,13 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
     def init(self, model, prior) -> GaussianState:
         return self._gaussian(self.prior_element(model, prior))
 
+    def resume(self, model, state) -> GaussianState:
+        """Another Gaussian filter's state with P in this filter's form."""
+        return resume_gaussian(state, self._factor_type, type(self).__name__)
+
     def step(self, model, state: GaussianState, k, y, u, key=None):
-        if isinstance(state.factor, self._factor_type):
-            own = state.factor.chol if self.square_root else state.factor.cov
-        else:  # resuming from another filter's state
-            own = cholesky(state.factor.cov) if self.square_root else state.factor.cov
+        state = self.resume(model, state)
+        own = state.factor.chol if self.square_root else state.factor.cov
         previous = ParallelElement(
             self._from_gaussian(state.mean, own, state.loglik),
             self._no_measurement(model, state.mean.dtype),

@@ -59,7 +59,9 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_gaussian_arguments, check_matrix, is_concrete
 from jaxest._estimator import AbstractEstimator, AbstractResult
+from jaxest._priors import Gaussian
 from jaxest._status import Status, finite_status, status_where
+from jaxest.filters.base import GaussianState
 from jaxest.filters.common import gaussian_loglik, masked_measurement
 from jaxest.linalg import cholesky, mv, solve_triangular, tria
 
@@ -323,6 +325,26 @@ class ParticleFilter(AbstractEstimator):
             jnp.broadcast_to(chol, (N, *chol.shape)),
         )
         return ParticleState(transition, jnp.full((N,), -math.log(N), dtype), jnp.zeros((), dtype))
+
+    def resume(self, model, state) -> ParticleState:
+        """A particle filter's state as it is; a Gaussian filter's (x(k|k-1), P(k|k-1)) as the
+        Gaussian the particles are drawn from, as :meth:`init` draws them from the prior, with
+        its log-likelihood carried on."""
+        name = type(self).__name__
+        if isinstance(state, GaussianState):
+            drawn_from = self.init(model, Gaussian(state.mean, state.factor.cov))
+            return eqx.tree_at(lambda s: s.loglik, drawn_from, state.loglik)
+        if not isinstance(state, ParticleState):
+            raise ValueError(
+                f"state: {name} resumes from a particle filter's or a Gaussian filter's state "
+                f"(result.final_state), got {type(state).__name__}"
+            )
+        if state.log_weights.shape[-1] != self.num_particles:
+            raise ValueError(
+                f"state: holds {state.log_weights.shape[-1]} particles, this {name} "
+                f"{self.num_particles}"
+            )
+        return state
 
     def step(self, model, state: ParticleState, k, y, u, key):
         key_propose, key_resample = jax.random.split(key)
