@@ -147,6 +147,24 @@ def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""
         raise ValueError(f"{name}: expected {dim} column(s){dim_source}, got {shape[1]}")
 
 
+def check_inputs(inputs, length: int, steps: str) -> None:
+    """``inputs``: an array, or a pytree of arrays, each with a leading time axis of ``length``
+    steps (u_k is the k-th slice of every leaf); ``steps`` says where ``length`` comes from
+    ("the measurements have 10")."""
+    leaves = jax.tree_util.tree_leaves_with_path(inputs)
+    if not leaves:
+        raise ValueError("inputs: holds no arrays; pass None for a model without inputs")
+    for path, leaf in leaves:
+        name = "inputs" + jax.tree_util.keystr(path)
+        shape = np.shape(as_array(name, leaf))
+        if not shape:
+            raise ValueError(
+                f"{name}: expected a leading time axis of {length} steps, got a scalar"
+            )
+        if shape[0] != length:
+            raise ValueError(f"{name}: has {shape[0]} time steps but {steps}")
+
+
 def check_measurements(ys):
     """``ys`` is a (T, m) array, real, and has no +-inf (NaN marks a missing entry; inf is an
     error)."""
@@ -203,7 +221,7 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     check_measurements(ys)
     T, m_ys = np.shape(ys)
     if inputs is not None:
-        check_sequence("inputs", inputs, length=T)
+        check_inputs(inputs, T, f"the measurements have {T}")
     check_inputs_used(model, inputs)
     n = linear_state_dim(model, prior) if isinstance(model, LinearGaussian) else None
     n = check_gaussian_prior(prior, n)
@@ -313,6 +331,12 @@ def _evaluate_shapes(model, x, u) -> dict[str, tuple]:
         f, F, G, Q = jax.eval_shape(model.transition, x, u, 0)
         h, H, R = jax.eval_shape(model.observation, x, u, 0)
     except Exception as err:  # noqa: BLE001 - reported with the argument's name
+        if u is None and "NoneType" in str(err):  # a function that reads u, given none
+            raise ValueError(
+                f"inputs: the model cannot be evaluated with u = None and k = 0 (no inputs were "
+                f"given; {type(err).__name__}: {err}); if its functions read u, pass "
+                f"inputs= with a leading time axis (they are called as (x), (x, u) or (x, u, k))"
+            ) from err
         inputs = "u = None" if u is None else f"u of shape {jax.tree.map(np.shape, u)}"
         raise ValueError(
             f"prior.mean: the model cannot be evaluated at a state of shape {np.shape(x)} "

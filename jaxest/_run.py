@@ -131,7 +131,8 @@ def run(
         ys: measurements, shape (T, m).
         prior: what ``estimator.init`` takes (a :class:`~jaxest.Gaussian` for the Gaussian
             filters), the belief about the state at the first measurement.
-        inputs: known inputs u_k with leading axis T, or ``None``.
+        inputs: known inputs u_k with leading axis T (an array, or a pytree of arrays for a
+            nonlinear model's functions; a linear model's are (T, p)), or ``None``.
         key: PRNG key for estimators that sample; step k draws with ``fold_in(key, k)``, so
             a run resumed with the same key (``state=``, ``k0=``) continues the draws of one
             run instead of repeating the first chunk's.

@@ -27,6 +27,7 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest._priors import Gaussian
@@ -283,7 +284,12 @@ def check_inputs_used(model, inputs):
             "inputs: the model has input matrices (model.B or model.D) but no inputs were given, "
             "so they would be ignored; pass inputs (zeros for none) or build the model without them"
         )
-    if not linear or len(getattr(inputs, "shape", ())) != 2:  # (T, p); others: check_sequence
+    if linear and inputs is not None and len(np.shape(inputs)) != 2:
+        raise ValueError(
+            f"inputs: a linear model's inputs are a (T, p) array (B u_k), got shape "
+            f"{jax.tree.map(np.shape, inputs)}"
+        )
+    if not linear or inputs is None:
         return
     for name, rows in (("B", "F"), ("D", "H")):
         matrix = getattr(model, name)
@@ -346,7 +352,12 @@ def simulate(
     Covariances whose values are known are checked here (``ValueError``); under ``jit`` a bad
     one shows in :attr:`Simulation.status` instead.
     """
-    from jaxest._checks import check_matrix, first_input, model_shapes  # _checks imports this
+    from jaxest._checks import (  # _checks imports this
+        check_inputs,
+        check_matrix,
+        first_input,
+        model_shapes,
+    )
 
     try:
         steps = operator.index(num_steps)  # a Python, NumPy or concrete JAX integer
@@ -362,10 +373,10 @@ def simulate(
     start = x0.mean if isinstance(x0, Gaussian) else x0
     if isinstance(model, LinearGaussian):
         check_matrix("model.F", model.F, square=True)
+    if inputs is not None:
+        check_inputs(inputs, steps, f"num_steps is {steps}")
     check_inputs_used(model, inputs)
     check_time_axes(model, 0, steps)
-    if inputs is not None and any(jnp.shape(a)[:1] != (steps,) for a in jax.tree.leaves(inputs)):
-        raise ValueError(f"inputs: expected a leading time axis of num_steps = {steps}")
     if isinstance(model, LinearGaussian):
         n = model.F.shape[-1]
         if start.shape != (n,):

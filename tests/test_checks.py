@@ -94,6 +94,42 @@ def test_mismatched_input_length():
         je.run(KalmanFilter(), model, ys, inputs=jnp.zeros((4, 1)), prior=prior)
 
 
+def test_inputs_may_be_a_pytree_and_missing_inputs_are_named():
+    """simulate took inputs as a dict of arrays and run refused them ("expected shape (T, d),
+    got ()"); a model that reads u, given no inputs, was blamed on prior.mean."""
+    T = 12
+    f_dict = lambda x, u: jnp.array([0.9 * x[0] + 0.1 * jnp.sin(x[1]), 0.8 * x[1]]) + u["b"]
+    f_array = lambda x, u: jnp.array([0.9 * x[0] + 0.1 * jnp.sin(x[1]), 0.8 * x[1]]) + u
+    h_dict = lambda x, u: x[:1] ** 3 / 10 + x[1:] * u["a"]
+    h_array = lambda x, u: x[:1] ** 3 / 10 + x[1:] * 2.0  # u["a"] is 2 throughout
+    cov = 0.1 * jnp.eye(2), 0.5 * jnp.eye(1)
+    by_dict, by_array = (
+        je.NonlinearGaussian(f_dict, h_dict, *cov),
+        je.NonlinearGaussian(f_array, h_array, *cov),
+    )
+    prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
+    b = jnp.asarray(np.random.default_rng(0).normal(size=(T, 2)))
+    inputs = {"a": jnp.full((T,), 2.0), "b": b}
+    ys = je.simulate(by_dict, prior, T, jax.random.key(0), inputs=inputs).y
+    filtered = je.run(je.EKF(), by_dict, ys, prior=prior, inputs=inputs)
+    reference = je.run(je.EKF(), by_array, ys, prior=prior, inputs=b)
+    np.testing.assert_allclose(filtered.mean, reference.mean, rtol=1e-12)
+    smoothed = je.rts_smooth(by_dict, filtered, inputs=inputs)
+    np.testing.assert_allclose(smoothed.mean, je.rts_smooth(by_array, reference, inputs=b).mean,
+                               rtol=1e-12)  # fmt: skip
+    with pytest.raises(ValueError, match=r"^inputs\['b'\]: has 5 time steps but the measurements"):
+        je.run(je.EKF(), by_dict, ys, prior=prior, inputs={**inputs, "b": b[:5]})
+    with pytest.raises(ValueError, match=r"^inputs\['a'\]: expected a leading time axis"):
+        je.simulate(by_dict, prior, T, jax.random.key(0), inputs={**inputs, "a": 2.0})
+    with pytest.raises(ValueError, match="^inputs: the model cannot be evaluated with u = None"):
+        je.run(je.EKF(), by_array, ys, prior=prior)
+    with pytest.raises(ValueError, match="^inputs: the model cannot be evaluated with u = None"):
+        je.simulate(by_dict, prior, T, jax.random.key(0))
+    linear = je.LinearGaussian(0.9 * jnp.eye(2), jnp.ones((1, 2)), *cov, B=jnp.eye(2))
+    with pytest.raises(ValueError, match=r"^inputs: a linear model's inputs are a \(T, p\) array"):
+        je.run(je.KalmanFilter(), linear, ys, prior=prior, inputs={"b": b})
+
+
 def test_inputs_to_a_linear_model_without_input_matrices_are_rejected():
     # they were ignored without a word: the estimates came out as if there were no inputs
     model, ys, prior = good()

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_sequence, concrete_k0, first_input, model_shapes
+from jaxest._checks import check_inputs, concrete_k0, first_input, model_shapes
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.filters.common import definiteness_status
@@ -75,7 +75,7 @@ def check_smoother_arguments(smoother: str, model, result, inputs, k0=0) -> None
     if T == 0:
         raise ValueError(f"result: has no steps (T = 0), nothing for {smoother} to smooth")
     if inputs is not None:
-        check_sequence("inputs", inputs, length=T)
+        check_inputs(inputs, T, f"the filter's result has {T}")
     check_inputs_used(model, inputs)
     u0 = None if inputs is None else jax.tree.map(first_input, inputs)
     try:
