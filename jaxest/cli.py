@@ -311,6 +311,8 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--runs: must be at least 1")
     if args.jobs < 1:
         raise SystemExit("--jobs: must be at least 1")
+    if args.out.exists() and not args.out.is_dir():  # mkdir said "File exists"
+        raise SystemExit(f"--out: {args.out} is a file, not a directory")
     try:
         args.out.mkdir(parents=True, exist_ok=True)
     except OSError as error:

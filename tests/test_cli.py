@@ -34,6 +34,8 @@ def test_an_output_folder_that_cannot_be_made_is_named(tmp_path):
     (tmp_path / "file").write_text("")  # was a NotADirectoryError traceback
     with pytest.raises(SystemExit, match="^--out: cannot create .*Not a directory"):
         cli.main(["reproduce", "filters", "--quick", "--out", str(tmp_path / "file" / "sub")])
+    with pytest.raises(SystemExit, match="^--out: .*file is a file, not a directory$"):
+        cli.main(["reproduce", "filters", "--quick", "--out", str(tmp_path / "file")])
 
 
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs Linux's /proc")
