@@ -306,7 +306,7 @@ def _check_data(directory: Path, names) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
-    names = list(studies.STUDIES) if "all" in args.study else args.study
+    names = list(dict.fromkeys(studies.STUDIES if "all" in args.study else args.study))  # once each
     if args.runs is not None and args.runs < 1:
         raise SystemExit("--runs: must be at least 1")
     if args.jobs < 1:

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import jaxlib
 import pytest
@@ -177,6 +178,16 @@ def test_worker_command_forwards_every_option(tmp_path):
     worker = cli._parser().parse_args(command[3:])
     assert worker.worker == tmp_path / "entry.json"
     assert {**vars(worker), "worker": None} == vars(args)
+
+
+def test_a_study_named_twice_runs_once(tmp_path, monkeypatch):
+    ran = []  # a stand-in for the study: `reproduce wiener wiener` ran it twice
+    monkeypatch.setattr(
+        studies, "load",
+        lambda name: SimpleNamespace(DESCRIPTION=name, run=lambda *a, **k: ran.append(name)),
+    )  # fmt: skip
+    cli.main(["reproduce", "wiener", "filters", "wiener", "--out", str(tmp_path)])
+    assert ran == ["wiener", "filters"]
 
 
 def test_after_a_failed_study_no_other_starts(tmp_path, monkeypatch, capsys):
