@@ -217,8 +217,8 @@ def test_resume_from_final_state_equals_one_run(Filter):
 
 def test_a_filter_resumes_from_another_filters_state():
     """Each Gaussian filter takes another's final state, whatever form holds P there (it raised
-    a TypeError or AttributeError); the particle filter draws its particles from a Gaussian
-    filter's predicted state; states of another kind are named."""
+    a TypeError or AttributeError), the steady-state filter its mean; the particle filter draws
+    its particles from a Gaussian filter's predicted state; states of another kind are named."""
     model, ys = linear_problem()
     whole = je.run(je.KalmanFilter(), model, ys, prior=PRIOR)
     handovers = [(je.KalmanFilter(), je.SquareRootKF()), (je.SquareRootKF(), je.SVDEKF()),
@@ -231,6 +231,12 @@ def test_a_filter_resumes_from_another_filters_state():
         np.testing.assert_allclose(rest.mean, whole.mean[25:], rtol=1e-9, atol=1e-10)
         np.testing.assert_allclose(rest.loglik, whole.loglik, rtol=1e-10)
     first = je.run(je.SquareRootKF(), model, ys[:25], prior=PRIOR)
+    # the steady-state filter takes the mean (and log-likelihood) and holds its own Sigma
+    steady = je.run(je.SteadyStateKalmanFilter(), model, ys[25:], state=first.final_state, k0=25)
+    fresh = je.run(je.SteadyStateKalmanFilter(), model, ys[25:],
+                   prior=je.Gaussian(first.final_state.mean, PRIOR.cov))  # fmt: skip
+    np.testing.assert_allclose(steady.mean, fresh.mean, rtol=1e-12)
+    np.testing.assert_allclose(steady.loglik, first.loglik + fresh.loglik, rtol=1e-12)
     particles = je.run(je.ParticleFilter(4000), model, ys[25:], state=first.final_state, k0=25,
                        key=jax.random.key(0))  # fmt: skip
     spread = np.sqrt(np.diagonal(np.asarray(whole.cov[25:]), axis1=1, axis2=2))

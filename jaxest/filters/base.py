@@ -98,15 +98,21 @@ class InformationMatrix(AbstractCovarianceFactor):
         return chol_inverse(cholesky(self.info))
 
 
-def resume_gaussian(state, factor_type: type[AbstractCovarianceFactor], name: str):
-    """``state``, a Gaussian filter's :class:`GaussianState`, with P held as ``factor_type``
-    (converted through P where another filter held it otherwise); ``name``: the resuming
-    filter's, for the ``ValueError`` any other state gets."""
+def check_gaussian_state(state, name: str) -> None:
+    """A ``ValueError`` where ``state``, given to the Gaussian filter ``name`` to resume from,
+    is not a Gaussian filter's :class:`GaussianState`."""
     if not isinstance(state, GaussianState):
         raise ValueError(
             f"state: {name} resumes from a Gaussian filter's state (its result.final_state), "
             f"got {type(state).__name__}"
         )
+
+
+def resume_gaussian(state, factor_type: type[AbstractCovarianceFactor], name: str):
+    """``state``, a Gaussian filter's :class:`GaussianState`, with P held as ``factor_type``
+    (converted through P where another filter held it otherwise); ``name``: the resuming
+    filter's, for the ``ValueError`` any other state gets."""
+    check_gaussian_state(state, name)
     if not isinstance(state.factor, factor_type):
         return GaussianState(state.mean, factor_type.from_cov(state.factor.cov), state.loglik)
     return state

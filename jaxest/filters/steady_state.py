@@ -28,6 +28,7 @@ from jaxest.filters.base import (
     AbstractGaussianFilter,
     GaussianState,
     StepOutput,
+    check_gaussian_state,
 )
 from jaxest.filters.common import gaussian_loglik
 from jaxest.linalg import symmetrize, working_precision_by_default
@@ -149,9 +150,20 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
 
     def init(self, model, prior: Gaussian) -> GaussianState:
         check_gaussian_prior(prior)
+        zero = jnp.zeros((), jnp.result_type(prior.mean))
+        return GaussianState(prior.mean, self._factor(model), zero)
+
+    def resume(self, model, state) -> GaussianState:
+        """Another Gaussian filter's state: its mean and log-likelihood, with the steady state's
+        Sigma in place of its covariance (as :meth:`init` takes only the prior's mean)."""
+        check_gaussian_state(state, type(self).__name__)
+        if isinstance(state.factor, SteadyStateFactor):
+            return state
+        return GaussianState(state.mean, self._factor(model), state.loglik)
+
+    def _factor(self, model) -> SteadyStateFactor:
         gain = steady_state_gain(model) if self.gain is None else self.gain
-        factor = SteadyStateFactor(gain, jnp.linalg.cholesky(gain.innovation_cov))
-        return GaussianState(prior.mean, factor, jnp.zeros((), jnp.result_type(prior.mean)))
+        return SteadyStateFactor(gain, jnp.linalg.cholesky(gain.innovation_cov))
 
     def check(self, model, ys, inputs, prior) -> None:
         check_time_invariant(model)
