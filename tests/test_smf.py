@@ -198,6 +198,21 @@ def test_an_infinite_reading_is_an_alarm_not_a_missing_measurement(reading):
     np.testing.assert_array_equal(result.shape, discarded.shape)
 
 
+def test_a_float_exponent_keeps_the_truth_in_the_set():
+    """h = x ** 3.0 (pow, not integer_pow) over a prior reaching below 0: the update excluded the
+    true x = -1 with status OK (set [-1.300, -1.181]) and the prediction with f = x ** 3.0 missed
+    f(-1.3); both now equal those of x ** 3."""
+    prior = Ellipsoid(jnp.asarray([-0.6]), jnp.asarray([[0.49]]))
+    for h in (lambda x: x**3.0, lambda x: x**3):
+        model = BoundedNoiseModel(lambda x: x, h, [0.01], [0.01])
+        result = run(SetMembershipFilter(), model, jnp.asarray([[-1.0]]), prior=prior)
+        assert int(result.status[0]) == 0 and bool(result.contains(jnp.asarray([[-1.0]]))[0])
+    for f in (lambda x: x**3.0, lambda x: x**3):
+        model = BoundedNoiseModel(f, lambda x: x, [0.01], [0.01])
+        predicted = SetMembershipFilter().predict(model, prior)
+        assert (-2.197 - float(predicted.center[0])) ** 2 <= float(predicted.shape[0, 0])
+
+
 def test_a_singular_jacobian_keeps_the_predicted_set_bounded():
     """F P F^T is flat where f's Jacobian is singular. The box added to it gives a bounded set,
     where the filter used to flag ILL_CONDITIONED and then UNBOUNDED for good: a state driven by

@@ -9,7 +9,8 @@ interval that contains the exact real result of the operation on every point of 
   outward by k * eps * |value| (:func:`_widen`) and then one more ulp;
 - library functions (exp, log, sin, tan, asin, atan, tanh...) are not correctly rounded; XLA's are
   accurate to a few ulps, and their endpoints move outward by ``_LIBM_ULPS`` ulps;
-- sinh, cosh, erfc and x^y (``pow``) are composed of those rules (``_composed``).
+- sinh, cosh, erfc, exp2, log1p and x^y (``pow``, :func:`pow_`) are composed of those rules
+  (``_composed``).
 
 A primitive without a rule raises ``NotImplementedError`` naming it.
 
@@ -27,10 +28,12 @@ from collections.abc import Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 from jax.extend import core as jex
 from jaxtyping import Array, Float
 
+from jaxest._checks import is_concrete
 from jaxest._jaxpr import any_equation, zero_outputs
 
 #: outward widening (in ulps) of library functions that are not correctly rounded
@@ -128,10 +131,13 @@ def sub(a, b) -> Interval:
 def mul(a, b) -> Interval:
     a, b = lift(a), lift(b)
     pairs = [(a.lo, b.lo), (a.lo, b.hi), (a.hi, b.lo), (a.hi, b.hi)]
-    # 0 * inf is NaN; the product is 0 there (an exact zero times an unbounded factor). Any other
-    # NaN (a NaN endpoint: the enclosure failed) stays NaN and shows in the filter's status.
-    zero_times_inf = lambda x, y: ((x == 0) & jnp.isinf(y)) | (jnp.isinf(x) & (y == 0))
-    products = [jnp.where(zero_times_inf(x, y), 0.0, x * y) for x, y in pairs]
+    # 0 * inf and 0 * NaN are NaN; the product is 0 there: an exact zero times an unbounded factor,
+    # or times a factor whose enclosure failed (a NaN endpoint), is zero, as a Hessian's entries
+    # that do not depend on a row whose enclosure failed are (its zero cotangent times the NaN).
+    # A NaN endpoint times anything but an exact zero interval stays NaN (the lower and upper
+    # products' minimum and maximum take it), and shows in the filter's status.
+    zero_times = lambda x, y: ((x == 0) & ~jnp.isfinite(y)) | (~jnp.isfinite(x) & (y == 0))
+    products = [jnp.where(zero_times(x, y), 0.0, x * y) for x, y in pairs]
     lo = jnp.minimum(jnp.minimum(products[0], products[1]), jnp.minimum(products[2], products[3]))
     hi = jnp.maximum(jnp.maximum(products[0], products[1]), jnp.maximum(products[2], products[3]))
     return _widen(lo, hi, 1)
@@ -351,9 +357,7 @@ def select_n(pred, *cases) -> Interval | Array:
 
 _unary_increasing = {
     "exp": jnp.exp,
-    "exp2": jnp.exp2,
     "expm1": jnp.expm1,
-    "log1p": jnp.log1p,
     "tanh": jnp.tanh,
     "atan": jnp.arctan,
     "asinh": jnp.arcsinh,
@@ -371,17 +375,48 @@ def _half(x: Interval) -> Interval:
     return Interval(0.5 * x.lo, 0.5 * x.hi)  # exact in binary floating point, but on underflow
 
 
+def _ln2(dtype) -> Interval:
+    """An interval around ln 2 in ``dtype`` (its rounded value one ulp either way)."""
+    ln2 = jnp.asarray(math.log(2.0), dtype)
+    return Interval(_down(ln2), _up(ln2))
+
+
+def pow_(x, y) -> Interval:
+    """x^y. ``x ** 3.0`` traces as ``pow``, not ``integer_pow``: an exponent known when tracing
+    takes :func:`integer_pow`'s rule where its value is an integer, which holds for x < 0 as
+    JAX's x^y does; elsewhere x^y = e^(y log x), which encloses x^y where x >= 0 (JAX's x^y is
+    NaN at x < 0 and a non-integer y). An exponent known only when running (traced) gives NaN
+    where the box reaches x < 0: its value may be an integer, so the enclosure fails, and the
+    filter's status says so (it had dropped x < 0, a set without the truth, with status OK)."""
+    x = lift(x)
+    positive = _exp(mul(y, log(x)))
+    if isinstance(y, Interval) or not is_concrete(y):
+        negative = x.lo < 0
+        return Interval(jnp.where(negative, jnp.nan, positive.lo),
+                        jnp.where(negative, jnp.nan, positive.hi))  # fmt: skip
+    exponents = np.asarray(y)
+    out = positive
+    for value in np.unique(exponents[np.mod(exponents, 1) == 0]):
+        integer = integer_pow(x, int(value))
+        at = exponents == value
+        out = Interval(jnp.where(at, integer.lo, out.lo), jnp.where(at, integer.hi, out.hi))
+    return out
+
+
 # functions composed of the rules above, so their enclosures are guaranteed as those are (no
-# assumption on XLA's own sinh, cosh, erfc or pow): sinh = (e^x - e^-x) / 2 is tight, as both
-# terms increase with x; cosh = (e^|x| + e^-|x|) / 2 bounds its two terms apart, so it can be
-# wider than cosh's range; erfc = 1 - erf; x^y = e^(y log x) for x > 0
+# assumption on XLA's own sinh, cosh, erfc, exp2, log1p or pow): sinh = (e^x - e^-x) / 2 is
+# tight, as both terms increase with x; cosh = (e^|x| + e^-|x|) / 2 bounds its two terms apart,
+# so it can be wider than cosh's range; erfc = 1 - erf; 2^x = e^(x ln 2) and log1p x = log(1 + x)
+# (XLA's own were measured 113 and 10 ulps off, past _LIBM_ULPS); x^y: pow_
 _composed = {
     "sinh": lambda x: _half(sub(_exp(x), _exp(-lift(x)))),
     "cosh": lambda x: _half(add(_exp(abs_(lift(x))), _exp(-abs_(lift(x))))),
     "erfc": lambda x: sub(
         point(jnp.ones_like(lift(x).lo)), _increasing(_unary_increasing["erf"], lift(x))
     ),
-    "pow": lambda x, y: _exp(mul(lift(y), log(lift(x)))),
+    "exp2": lambda x: _exp(mul(lift(x), _ln2(lift(x).dtype))),
+    "log1p": lambda x: log(add(point(jnp.ones_like(lift(x).lo)), x)),
+    "pow": pow_,
 }
 
 _structural = {
@@ -555,13 +590,36 @@ def eval_jaxpr(jaxpr, consts, *args, kinks: list | None = None) -> list:
         env[var] = val
     for var, val in zip(jaxpr.invars, args, strict=True):
         env[var] = val
-    for eqn in jaxpr.eqns:
-        out = _apply(eqn, [read(v) for v in eqn.invars], kinks)
+    exponents = _exponent_equations(jaxpr)
+    for index, eqn in enumerate(jaxpr.eqns):
+        invals = [read(v) for v in eqn.invars]
+        if index in exponents and all(is_concrete(v) for v in invals):
+            # computed now, inside a trace too, so that pow_ can read the exponent's value (pow's
+            # derivative takes y - 1 of its exponent)
+            with jax.ensure_compile_time_eval():
+                out = eqn.primitive.bind(*invals, **eqn.params)
+        else:
+            out = _apply(eqn, invals, kinks)
         outs = out if eqn.primitive.multiple_results else [out]
         for var, val in zip(eqn.outvars, outs, strict=True):
             if not isinstance(var, jex.DropVar):
                 env[var] = val
     return [read(v) for v in jaxpr.outvars]
+
+
+def _exponent_equations(jaxpr) -> set[int]:
+    """The indices of ``jaxpr``'s equations that compute a ``pow``'s exponent, and those that
+    compute their arguments, back to the jaxpr's inputs, constants and literals."""
+    producer = {var: index for index, eqn in enumerate(jaxpr.eqns) for var in eqn.outvars}
+    wanted = [eqn.invars[1] for eqn in jaxpr.eqns if eqn.primitive.name == "pow"]
+    marked = set()
+    while wanted:
+        var = wanted.pop()
+        index = None if isinstance(var, jex.Literal) else producer.get(var)
+        if index is not None and index not in marked:
+            marked.add(index)
+            wanted += jaxpr.eqns[index].invars
+    return marked
 
 
 def _shapes(box: Interval, args):
