@@ -344,6 +344,13 @@ def test_isolation_decisions_and_scores():
     assert (s["min_delay"], s["max_delay"], s["mean_delay"]) == (0, 2, 1.0)
     assert abs(fdi.chi_square_threshold(2, 0.01) - 9.21034) < 1e-4
     assert abs(fdi.chi_square_threshold(3, 0.05) - 7.814728) < 1e-4
+    # a negative significance doubled the bracket forever; 1.5 gave 6e-61 (-0.81 at 2 dof)
+    for dof, significance in ((3, -0.05), (3, 1.5), (2, 1.5), (2, 0.0)):
+        with pytest.raises(ValueError, match="^significance: must lie in"):
+            fdi.chi_square_threshold(dof, significance)
+    for dof in (0, 2.0, True):
+        with pytest.raises(ValueError, match="^dof: must be a positive integer"):
+            fdi.chi_square_threshold(dof, 0.05)
 
 
 def test_arguments_are_checked_before_tracing():

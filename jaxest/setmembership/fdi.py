@@ -35,6 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
+from jaxest._checks import check_positive_int
 from jaxest.linalg import cholesky, solve_triangular
 
 
@@ -112,6 +113,10 @@ def score(
 def chi_square_threshold(dof: int, significance: float) -> float:
     """The (1 - significance) quantile of the chi-square distribution with ``dof`` degrees of
     freedom (bisection on the regularised incomplete gamma function; exact -2 ln(alpha) for 2)."""
+    check_positive_int("dof", dof)
+    if not (isinstance(significance, int | float | np.floating) and 0 < significance < 1):
+        # a negative one doubled the bracket forever; 1.5 gave 6e-61 or, at 2 dof, -0.81
+        raise ValueError(f"significance: must lie in (0, 1), got {significance!r}")
     if dof == 2:
         return -2.0 * math.log(significance)
     cdf = lambda x: float(jax.scipy.special.gammainc(dof / 2.0, x / 2.0))
