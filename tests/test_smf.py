@@ -213,6 +213,29 @@ def test_a_float_exponent_keeps_the_truth_in_the_set():
         assert (-2.197 - float(predicted.center[0])) ** 2 <= float(predicted.shape[0, 0])
 
 
+def test_a_closed_form_remainder_bound_is_checked():
+    """A user's h_remainder of the wrong shape was broadcast, and a negative one narrowed the strip
+    below the noise bound: the set [0.09, 0.11] lost the true x = 0 with status OK."""
+    prior = Ellipsoid(jnp.zeros(1), jnp.eye(1))
+    model = lambda bound: BoundedNoiseModel(lambda x: x, lambda x: x, [0.01], [0.1],
+                                            h_remainder=bound)  # fmt: skip
+    with pytest.raises(
+        ValueError, match=r"^model.h_remainder: expected half-widths of shape \(1,\)"
+    ):
+        set_membership_filter(
+            model(lambda c, P, u: jnp.zeros(3)), jnp.asarray([[0.1]]), prior=prior
+        )
+    with pytest.raises(ValueError, match="^model.f_remainder: calling it"):
+        set_membership_filter(BoundedNoiseModel(lambda x: x, lambda x: x, [0.01], [0.1],
+                                                f_remainder=lambda c, P: jnp.zeros(1)),
+                              jnp.asarray([[0.1]]), prior=prior)  # fmt: skip
+    # true x = 0 and v = 0.1, on its bound
+    negative = set_membership_filter(model(lambda c, P, u: -0.09 * jnp.ones(1)),
+                                     jnp.asarray([[0.1]]), prior=prior)  # fmt: skip
+    assert Status.NONFINITE in Status(int(negative.status[0]))
+    assert bool(negative.contains(jnp.zeros((1, 1)))[0])
+
+
 def test_a_singular_jacobian_keeps_the_predicted_set_bounded():
     """F P F^T is flat where f's Jacobian is singular. The box added to it gives a bounded set,
     where the filter used to flag ILL_CONDITIONED and then UNBOUNDED for good: a state driven by

@@ -124,7 +124,10 @@ class BoundedNoiseModel(eqx.Module):
             else (self.observation, self.h_remainder)
         )
         if custom_bound is not None:
-            return custom_bound(center, shape, u)
+            # a negative half-width bounds nothing (it narrowed the strip below the noise bound,
+            # and the set lost the truth with status OK): unknown, as a NaN one, and flagged
+            bound = jnp.asarray(custom_bound(center, shape, u))
+            return jnp.where(bound >= 0, bound, jnp.nan)
         try:
             return remainder_bound(lambda x: fn(x, u, k), center, shape)
         except NotImplementedError as error:
@@ -442,3 +445,17 @@ def check_smf_arguments(model, ys, prior, inputs):
             ) from error
         if value.shape not in ((size,), ()) or (value.shape == () and size != 1):
             raise ValueError(f"{name}: expected it to return shape ({size},), got {value.shape}")
+    for name, bound, size in (("model.f_remainder", model.f_remainder, n),
+                              ("model.h_remainder", model.h_remainder, m)):  # fmt: skip
+        if bound is None:
+            continue
+        try:
+            value = jax.eval_shape(bound, prior.center, prior.shape, u0)
+        except Exception as error:  # the user's bound failed on the prior's shapes
+            raise ValueError(
+                f"{name}: calling it with the prior's center and shape and the first input "
+                f"failed: {type(error).__name__}: {error}"
+            ) from error
+        if getattr(value, "shape", None) != (size,):  # a (3,) bound for one row was broadcast
+            got = getattr(value, "shape", type(value).__name__)
+            raise ValueError(f"{name}: expected half-widths of shape ({size},), got {got}")
