@@ -83,7 +83,9 @@ class BoundedNoiseModel(eqx.Module):
     inputs); with one measurement ``h`` may return a scalar.
     The remainder bounds default to the automatic interval bound of
     :func:`~jaxest.setmembership.interval.remainder_bound`; ``f_remainder(center, shape, u)`` /
-    ``h_remainder(center, shape, u)`` may replace it by a closed form (it must be guaranteed).
+    ``h_remainder(center, shape, u)`` may replace it by a closed form (it must be guaranteed):
+    half-widths of shape (n,) / (m,); a negative one is taken as unknown, as a NaN one (the row
+    is skipped, and the status says ``NONFINITE``).
     """
 
     f: Callable
