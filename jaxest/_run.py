@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxest._checks import check_key, concrete_k0
+from jaxest._checks import check_key, concrete_k0, first_input
 from jaxest._estimator import (
     AbstractAssociativeEstimator,
     AbstractEstimator,
@@ -216,7 +216,7 @@ def check_step_protocol(estimator, model, ys, inputs, prior, state, key, error) 
 
     def one_step():
         first = estimator.init(model, prior) if state is None else estimator.resume(model, state)
-        u = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
+        u = None if inputs is None else jax.tree.map(first_input, inputs)
         k = None if key is None else jax.random.fold_in(key, 0)
         return first, estimator.step(model, first, jnp.zeros((), jnp.int32), ys[0], u, k)
 

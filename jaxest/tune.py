@@ -33,7 +33,7 @@ from jaxest._checks import (
     is_concrete,
 )
 from jaxest._run import SaveAt, run
-from jaxest._status import Status, finite_status, status_where
+from jaxest._status import finite_status
 
 if TYPE_CHECKING:
     import optimistix as optx
@@ -255,9 +255,8 @@ def _where_finite(checked, new, old):
 def _finite_or_last_finite(theta, losses, last_finite):
     """``theta`` and ``Status.OK`` where it and every loss are finite, else the last iterate
     whose loss was finite and ``NONFINITE``."""
-    fine = finite_status(*jax.tree.leaves(theta), losses) == 0
-    theta = jax.tree.map(lambda a, b: jnp.where(fine, a, b), theta, last_finite)
-    return theta, losses, status_where(~fine, Status.NONFINITE)
+    status = finite_status(*jax.tree.leaves(theta), losses)
+    return _where_finite((theta, losses), theta, last_finite), losses, status
 
 
 def _minimiser_steps(minimiser, objective, theta0, num_steps):
