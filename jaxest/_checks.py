@@ -86,6 +86,28 @@ def as_array(name: str, value):
     raise ValueError(f"{name}: expected an array, got {type(value).__name__}{hint}")
 
 
+def check_operands(shape, vectors: dict, scalars: dict | None = None) -> None:
+    """``ValueError`` naming the argument unless ``shape`` (an ellipsoid's shape matrix) is an
+    (n, n) matrix, each of ``vectors`` (name: value) has shape (n,) and each of ``scalars``
+    shape (), all real floating point (a Python number is taken as a float): the operands of
+    the set-membership building blocks. A wrong length failed inside JAX with a broadcasting
+    error that named no argument, and an integer array in the rounding bounds (an integer type
+    has no unit roundoff). Shapes and dtypes are known when tracing: this holds under ``jit``
+    and ``vmap``."""
+    operands = {"shape": shape} | vectors | (scalars or {})
+    arrays = {name: as_array(name, value) for name, value in operands.items()}
+    got = arrays["shape"].shape
+    if len(got) != 2 or got[0] != got[1]:
+        raise ValueError(f"shape: expected a square (n, n) matrix, got shape {got}")
+    n = got[0]
+    for name, array in arrays.items():
+        expected = (n, n) if name == "shape" else (n,) if name in vectors else ()
+        if array.shape != expected:
+            raise ValueError(f"{name}: expected shape {expected} (n = {n}), got {array.shape}")
+        if not jnp.issubdtype(array.dtype, jnp.floating):
+            raise ValueError(f"{name}: must be real floating point, got {array.dtype}")
+
+
 def check_matrix(name: str, value, shape=None, *, square=False, spd=False, psd=False, ndim=2):
     """Raise ``ValueError`` naming ``name`` unless ``value`` is a well-formed matrix.
 
@@ -138,7 +160,7 @@ def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""
     """``value`` must be (T, dim); ``length`` is the T it must match (``None``: any)."""
     if value is None:
         raise ValueError(f"{name}: expected an array with a leading time axis, got None")
-    shape = np.shape(value)
+    shape = as_array(name, value).shape
     if len(shape) != 2:
         raise ValueError(f"{name}: expected shape (T, {dim if dim else 'd'}), got {shape}")
     if length is not None and shape[0] != length:
@@ -168,7 +190,7 @@ def check_inputs(inputs, length: int, steps: str) -> None:
 def check_measurements(ys):
     """``ys`` is a (T, m) array, real, and has no +-inf (NaN marks a missing entry; inf is an
     error)."""
-    check_sequence("ys", as_array("ys", ys))
+    check_sequence("ys", ys)
     if jnp.issubdtype(jnp.result_type(ys), jnp.complexfloating):
         raise ValueError(f"ys: must be real, got {jnp.result_type(ys)}")
     if is_concrete(ys) and np.any(np.isinf(np.asarray(ys, dtype=np.float64))):
@@ -186,19 +208,29 @@ def check_gaussian_prior(prior, n: int | None = None) -> int:
     """``prior`` is a :class:`~jaxest.Gaussian` with a vector mean and an SPD covariance."""
     if not isinstance(prior, Gaussian):
         raise ValueError(f"prior: expected jaxest.Gaussian(mean, cov), got {type(prior).__name__}")
-    for name, value in (("prior.mean", prior.mean), ("prior.cov", prior.cov)):
-        dtype = as_array(name, value).dtype
-        if not jnp.issubdtype(dtype, jnp.floating):  # an integer one changed the scan's carry
-            raise ValueError(f"{name}: must be real floating point, got {dtype}")
-    if np.ndim(prior.mean) != 1:
-        raise ValueError(f"prior.mean: expected a vector, got shape {np.shape(prior.mean)}")
-    size = np.shape(prior.mean)[0]
+    return check_prior_arrays(prior, "mean", "cov", n)
+
+
+def check_prior_arrays(prior, vector: str, matrix: str, n: int | None = None) -> int:
+    """The prior's fields ``vector`` (a Gaussian's mean, an ellipsoid's center) and ``matrix``
+    (its cov, shape): real floating point, each of them (an integer one changed the scan's
+    carry, or failed in ``jacfwd``), finite, a vector of size ``n`` (the model's, where given)
+    and a symmetric positive definite matrix of its size (values checked where concrete).
+    Returns the size."""
+    for field in (vector, matrix):
+        dtype = as_array(f"prior.{field}", getattr(prior, field)).dtype
+        if not jnp.issubdtype(dtype, jnp.floating):
+            raise ValueError(f"prior.{field}: must be real floating point, got {dtype}")
+    center, spread = getattr(prior, vector), getattr(prior, matrix)
+    if np.ndim(center) != 1:
+        raise ValueError(f"prior.{vector}: expected a vector, got shape {np.shape(center)}")
+    size = np.shape(center)[0]
     if n is not None and size != n:
-        raise ValueError(f"prior.mean: expected shape ({n},) to match the model, got ({size},)")
-    check_matrix("prior.mean", prior.mean, (size,), ndim=1)  # finite
-    if np.ndim(prior.cov) != 2:
-        raise ValueError(f"prior.cov: expected shape ({size}, {size}), got {np.shape(prior.cov)}")
-    check_matrix("prior.cov", prior.cov, (size, size), spd=True)
+        raise ValueError(f"prior.{vector}: expected shape ({n},) to match the model, got ({size},)")
+    check_matrix(f"prior.{vector}", center, (size,), ndim=1)  # finite
+    if np.ndim(spread) != 2:
+        raise ValueError(f"prior.{matrix}: expected shape ({size}, {size}), got {np.shape(spread)}")
+    check_matrix(f"prior.{matrix}", spread, (size, size), spd=True)
     return size
 
 

@@ -201,3 +201,35 @@ def test_strip_on_an_elongated_set_matches_exact_arithmetic():
     exact = _exact_strip([0, 0], P, [0, 1], 0.01, 0.05)
     assert abs(float(shape[1, 1]) / exact[1, 1] - 1) < 1e-6
     assert bool(contains(c, shape, jnp.array([0.0, 0.04])))
+
+
+def test_a_negative_half_width_is_an_empty_strip():
+    # the strip |z - h^T x| <= -0.1 holds no point; it shrank the set and reported it non-empty
+    for n in (1, 2):
+        c, P, h = jnp.zeros(n), jnp.eye(n), jnp.ones(n)
+        c2, P2, empty = intersect_strip(c, P, h, jnp.asarray(0.0), jnp.asarray(-0.1))
+        assert bool(empty)
+        np.testing.assert_array_equal(np.asarray(P2), np.asarray(P))
+        _, _, empty = intersect_strip(c, P, h, jnp.asarray(0.0), jnp.asarray(0.0))
+        assert not bool(empty)  # a zero half-width is a hyperplane through the set
+
+
+def test_each_operation_names_a_bad_operand_also_under_jit():
+    P, c, v = jnp.eye(2), jnp.zeros(2), jnp.asarray(0.1)
+    cases = [
+        (lambda: add_box(P, jnp.ones(3)), "^half_widths: expected shape \\(2,\\)"),
+        (lambda: add_box(jnp.ones((2, 3)), jnp.ones(2)), "^shape: expected a square"),
+        (lambda: add_segment(P, jnp.ones(3)), "^direction: expected shape"),
+        (lambda: intersect_strip(c, P, jnp.ones(3), v, v), "^normal: expected shape"),
+        (lambda: intersect_strip(c, P, c, jnp.ones(1), v), "^value: expected shape \\(\\)"),
+        (lambda: intersect_strip(c, P.astype(int), c, v, v), "^shape: must be real floating"),
+        (lambda: contains(c, P, jnp.zeros(3)), "^x: expected shape"),
+        (lambda: contains(c.astype(int), P, c), "^center: must be real floating"),
+        (lambda: contains([0.0, 0.0], P, c), "^center: expected an array, got list"),
+    ]
+    for call, message in cases:
+        with pytest.raises(ValueError, match=message):
+            call()
+    # an integer mask of rows: 2 & True was 0, a row silently dropped
+    with pytest.raises(ValueError, match="^rows: expected a boolean mask"):
+        ellipsoid.strips_ellipsoid(P, c, jnp.ones(2), jnp.array([1, 2]))

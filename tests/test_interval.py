@@ -395,6 +395,19 @@ def test_unsupported_primitive_is_named():
         hessian_interval(fn, Interval(jnp.zeros(2), jnp.ones(2)))
 
 
+def test_bad_boxes_and_ellipsoids_are_named():
+    # an empty box's "enclosure" was any number; a wrong-sized shape failed in JAX's broadcasting
+    cube = lambda x: x**3
+    with pytest.raises(ValueError, match="^box: has lo > hi"):
+        hessian_interval(cube, Interval(jnp.ones(1), -jnp.ones(1)))
+    with pytest.raises(ValueError, match="^box: expected an Interval"):
+        hessian_interval(cube, Interval(jnp.zeros(1), jnp.ones(2)))
+    with pytest.raises(ValueError, match="^center: expected shape \\(3,\\)"):
+        remainder_bound(cube, jnp.zeros(2), jnp.eye(3))
+    with pytest.raises(ValueError, match="^center: must be real floating point"):
+        remainder_bound(cube, jnp.zeros(2, int), jnp.eye(2))
+
+
 def test_reduce_sum_widens_relative_to_the_magnitude_of_the_terms():
     # the float sum of [1e16, 1, -1e16] is 0; the exact sum 1 must lie in the result
     x = Interval(jnp.array([1e16, 1.0, -1e16]), jnp.array([1e16, 1.0, -1e16]))

@@ -13,7 +13,12 @@ import jaxest as je
 from jaxest import run
 from jaxest.setmembership import fdi
 from jaxest.setmembership.ellipsoid import Ellipsoid
-from jaxest.setmembership.smf import BoundedNoiseModel, SetMembershipFilter, set_membership_filter
+from jaxest.setmembership.smf import (
+    BoundedNoiseModel,
+    SetMembershipFilter,
+    SMFResult,
+    set_membership_filter,
+)
 from jaxest.setmembership.status import SetStatus as Status
 from jaxest.studies import smf_fdi
 from jaxest.systems import duffing
@@ -398,6 +403,24 @@ def test_arguments_are_checked_before_tracing():
     with pytest.raises(ValueError, match="^prior: is float32, narrower"):
         narrow = Ellipsoid(prior.center.astype(jnp.float32), prior.shape.astype(jnp.float32))
         set_membership_filter(model, jnp.zeros((5, 2)), prior=narrow)
+    # these raised JAX's errors, which named no argument, or ran: predict on a non-symmetric set
+    with pytest.raises(ValueError, match="^prior.center: must be real floating point"):
+        set_membership_filter(
+            model, jnp.zeros((5, 2)), prior=Ellipsoid(jnp.zeros(2, int), prior.shape)
+        )
+    with pytest.raises(ValueError, match="^ys: expected an array, got list"):
+        set_membership_filter(model, [[0.0, 0.0]] * 5, prior=prior)
+    with pytest.raises(ValueError, match="^prior.center: expected shape \\(2,\\)"):
+        SetMembershipFilter().predict(model, Ellipsoid(jnp.zeros(3), jnp.eye(3)))
+    with pytest.raises(ValueError, match="^prior.shape: must be symmetric"):
+        SetMembershipFilter().predict(model, Ellipsoid(prior.center, prior.shape.at[0, 1].add(1.0)))
+    with pytest.raises(ValueError, match="^used: expected one entry per sensor"):
+        fdi.sensor_subset(jnp.zeros((5, 2)), jnp.array([True, False, True]))
+    with pytest.raises(ValueError, match="^alarms: expected \\(runs, T\\) with at least one"):
+        fdi.score(np.zeros((0, 5), bool), fault_start=2)  # NaN rates and NumPy warnings
+    result = SMFResult(None, center=jnp.zeros((5, 2)), shape=jnp.ones((5, 2, 2)))
+    with pytest.raises(ValueError, match="^states: expected one state per step, shape \\(5, 2\\)"):
+        result.contains(jnp.zeros((4, 2)))
 
 
 @pytest.mark.slow

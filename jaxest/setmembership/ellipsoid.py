@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from jaxest._checks import check_operands
 from jaxest.linalg import cho_solve_lower, cholesky, symmetrize, working_precision
 from jaxest.setmembership.rounding import (
     correlation_floor,
@@ -45,6 +46,7 @@ def add_segment(shape: Float[Array, "n n"], direction: Float[Array, " n"]) -> Fl
     p = 2a / ((n - 1) a + sqrt((n - 1)^2 a^2 + 4 n a)) (no cancellation; n = 1 gives sqrt(a)).
     A zero segment leaves P unchanged.
     """
+    check_operands(shape, {"direction": direction})
     return add_box_of_segments(shape, direction[None, :])
 
 
@@ -57,6 +59,11 @@ def add_box(
     segments half_widths_i e_i, added one at a time (eq 16 for i = 1..n; P_{k|k-1} = P^n),
     rounded outward once at the end (eq O3). ``shape_error`` bounds the rounding error already in
     ``shape`` (element-wise; the time update's F P F^T)."""
+    check_operands(shape, {"half_widths": half_widths})
+    if shape_error is not None and jnp.shape(shape_error) != shape.shape:
+        raise ValueError(
+            f"shape_error: expected the shape's {shape.shape}, got {jnp.shape(shape_error)}"
+        )
     n = shape.shape[-1]
     segments = half_widths[:, None] * jnp.eye(n, dtype=shape.dtype)
     return add_box_of_segments(shape, segments, shape_error)
@@ -169,8 +176,12 @@ def intersect_strip(
     factor 1 + q - q e^2/s is bounded from above, and the centre and shape (:func:`_joseph`)
     carry element-wise error bounds into :func:`~jaxest.setmembership.rounding.outward`.
 
+    A negative ``half_width`` is an empty strip: ``empty`` (it shrank the set instead).
+
     Returns ``(center, shape, empty)``.
     """
+    check_operands(shape, {"center": center, "normal": normal},
+                   {"value": value, "half_width": half_width})  # fmt: skip
     n = shape.shape[-1]
     dtype = shape.dtype
     u = unit_roundoff(dtype)
@@ -187,7 +198,8 @@ def intersect_strip(
     slack = (offset_error + gamma(4, dtype) * (jnp.abs(offset) + half_width)) / root_g
     phi_plus = (offset + half_width) / root_g + slack
     phi_minus = (offset - half_width) / root_g - slack
-    empty = positive & ((phi_plus < -slab) | (phi_minus > slab))
+    # the widened strip is empty (phi+ < phi-: a negative half-width) or misses the slab
+    empty = positive & ((phi_plus < phi_minus) | (phi_plus < -slab) | (phi_minus > slab))
     phi_plus = jnp.minimum(phi_plus, slab)
     phi_minus = jnp.maximum(phi_minus, -slab)
     e = 0.5 * (phi_plus + phi_minus)  # e / sqrt(g), eq 35
@@ -304,6 +316,8 @@ def strips_ellipsoid(
     for name, array in (("values", values), ("half_widths", half_widths), ("rows", rows)):
         if jnp.shape(array) != (m,):
             raise ValueError(f"{name}: expected shape ({m},), one per row, got {jnp.shape(array)}")
+    if jnp.result_type(rows) != jnp.bool_:  # rows & (h > 0) took 2 & True = 0: a row dropped
+        raise ValueError(f"rows: expected a boolean mask, got {jnp.result_type(rows)}")
     dtype = normals.dtype
     used = rows & (half_widths > 0)
     weights = jnp.where(used, 1.0 / _safe(used, half_widths), 0.0)
@@ -341,6 +355,7 @@ def contains(
     lambda_min(C)), and the rounding of y (2u |y|) moves sqrt(t) by at most
     2u ||y|| / sqrt(lambda_min(C)).
     """
+    check_operands(shape, {"center": center, "x": x})
     n = shape.shape[-1]
     dtype = shape.dtype
     u = unit_roundoff(dtype)

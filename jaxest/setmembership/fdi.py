@@ -41,6 +41,10 @@ from jaxest.linalg import cholesky, solve_triangular
 
 def sensor_subset(ys: Float[Array, "T m"], used: Bool[Array, " m"]) -> Float[Array, "T m"]:
     """``ys`` with the columns of the sensors not ``used`` replaced by NaN (no measurement)."""
+    if jnp.shape(used) != jnp.shape(ys)[-1:]:  # JAX's broadcasting error named no argument
+        raise ValueError(
+            f"used: expected one entry per sensor, shape {jnp.shape(ys)[-1:]}, got {jnp.shape(used)}"
+        )
     return jnp.where(jnp.asarray(used)[None, :], ys, jnp.nan)
 
 
@@ -92,6 +96,8 @@ def score(
     ``alarms[r, t]`` is a correct alarm at step t + first_step of run r (for isolation: the faulty
     sensor named); ``wrong`` an alarm naming a healthy sensor (isolation only)."""
     alarms = np.asarray(alarms, bool)
+    if alarms.ndim != 2 or alarms.shape[0] == 0:  # no runs gave NaN rates and NumPy warnings
+        raise ValueError(f"alarms: expected (runs, T) with at least one run, got {alarms.shape}")
     steps = np.arange(alarms.shape[-1]) + first_step
     before = steps < fault_start
     false_alarm = np.any(alarms & before, axis=-1)

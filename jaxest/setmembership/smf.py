@@ -53,7 +53,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-from jaxest._checks import check_matrix, check_precision, check_sequence, is_concrete
+from jaxest._checks import (
+    as_array,
+    check_precision,
+    check_prior_arrays,
+    check_sequence,
+    first_input,
+    is_concrete,
+)
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._run import run
 from jaxest._status import finite_status as check_finite_status
@@ -188,10 +195,18 @@ class SMFResult(AbstractResult):
     def unbounded(self) -> Bool[Array, " T"]:
         return (self.status & Status.UNBOUNDED) != 0
 
-    @eqx.filter_jit
     def contains(self, states: Float[Array, "T n"]) -> Bool[Array, " T"]:
         """Whether states[k] lies in the k-th ellipsoid (always true where unbounded). Compiled
         as one program (docs/performance.md, "First calls outside jit")."""
+        got = as_array("states", states).shape
+        if got != self.center.shape:  # JAX's broadcasting or vmap error named no argument
+            raise ValueError(
+                f"states: expected one state per step, shape {self.center.shape}, got {got}"
+            )
+        return self._contains(states)
+
+    @eqx.filter_jit
+    def _contains(self, states):
         bounded_shape = jnp.where(
             self.unbounded[:, None, None], jnp.eye(states.shape[-1]), self.shape
         )
@@ -290,6 +305,7 @@ class SetMembershipFilter(AbstractEstimator):
         """The time update of ``prior`` (at step ``k``) alone: the set one step later, without a
         measurement. Compiled as one program, once for every step ``k`` (docs/performance.md,
         "First calls outside jit")."""
+        check_model_and_prior(model, prior)
         return self._predict(model, prior, u, jnp.asarray(k))
 
     @eqx.filter_jit
@@ -410,8 +426,10 @@ def set_membership_filter(
     return run(estimator, model, ys, prior=prior, inputs=inputs, **run_options)
 
 
-def check_smf_arguments(model, ys, prior, inputs):
-    """Raise ``ValueError`` naming the argument for malformed SMF arguments."""
+def check_model_and_prior(model, prior) -> None:
+    """``model`` a :class:`BoundedNoiseModel` with vectors of non-negative half-widths and
+    ``prior`` an :class:`Ellipsoid` of its state's size, real, finite and positive definite
+    (``ValueError`` naming the argument; values checked where concrete)."""
     if not isinstance(model, BoundedNoiseModel):
         raise ValueError(f"model: expected a BoundedNoiseModel, got {type(model).__name__}")
     if not isinstance(prior, Ellipsoid):
@@ -425,16 +443,18 @@ def check_smf_arguments(model, ys, prior, inputs):
             )
         if is_concrete(value) and not np.all(np.asarray(value) >= 0):
             raise ValueError(f"model.{name}: half-widths must be non-negative")
+    check_prior_arrays(prior, "center", "shape", model.state_dim)
+
+
+def check_smf_arguments(model, ys, prior, inputs):
+    """Raise ``ValueError`` naming the argument for malformed SMF arguments."""
+    check_model_and_prior(model, prior)
     n, m = model.state_dim, model.obs_dim
     check_sequence("ys", ys, dim=m)
     if inputs is not None:
         check_sequence("inputs", inputs, length=np.shape(ys)[0])
-    if np.shape(prior.center) != (n,):
-        raise ValueError(f"prior.center: expected shape ({n},), got {np.shape(prior.center)}")
-    check_matrix("prior.center", prior.center, (n,), ndim=1)  # finite
-    check_matrix("prior.shape", prior.shape, (n, n), spd=True)
     check_precision(model, ys, prior)
-    u0 = None if inputs is None else jax.tree.map(lambda a: a[0], inputs)
+    u0 = None if inputs is None else jax.tree.map(first_input, inputs)
     for name, fn, size in (("model.f", model.f, n), ("model.h", model.h, m)):
         try:
             value = jax.eval_shape(
