@@ -40,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest._checks import is_concrete
 from jaxest.systems.flight import DEG
 
 __all__ = [
@@ -282,7 +283,7 @@ def advance_channels(outputs, dt: float, delays, max_delays) -> jax.Array:
         raise ValueError(
             f"max_delays: expected {outputs.shape[1]} non-negative numbers, got {max_delays}"
         )
-    if not isinstance(delays, jax.core.Tracer):
+    if is_concrete(delays):
         given, rounding = np.asarray(delays, np.float64), 1e-6 * dt  # 5 * 0.04 > 0.2, float32 0.2
         beyond = ~((-rounding <= given) & (given <= max_delays + rounding))
         if np.any(beyond):
