@@ -32,12 +32,30 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._priors import Gaussian
 from jaxest._status import finite_status
-from jaxest.linalg import after, factor_psd_or_nan, mv, working_precision_by_default
+from jaxest.linalg import (
+    after,
+    factor_psd_or_nan,
+    mv,
+    symmetrize,
+    working_precision_by_default,
+)
 
 
 def at_time(matrix: Array, k, ndim: int = 2) -> Array:
     """``matrix[k]`` if it carries a leading time axis (ndim + 1 dims), else ``matrix``."""
     return matrix[k] if matrix.ndim == ndim + 1 else matrix
+
+
+def noise_cov(cov: Array, k) -> Array:
+    """The covariance ``cov`` (at step ``k`` if it carries a time axis), as its symmetric part.
+    A covariance is symmetric; the argument checks refuse one that is not, but under ``jit``
+    its values are not known, and the filters read a non-symmetric one differently (those that
+    factor it took its lower triangle, the Kalman filter the symmetric part of S), each with
+    status OK. For a symmetric ``cov`` this is ``cov`` itself, to the bit; a non-square one is
+    returned as it is, for the argument checks to name."""
+    cov = at_time(cov, k)
+    square = cov.ndim >= 2 and cov.shape[-1] == cov.shape[-2]
+    return symmetrize(cov) if square else cov
 
 
 def jacobian_by_linearize(fn: Callable, x) -> tuple[Array, Array]:
@@ -104,7 +122,8 @@ class LinearGaussian(AbstractGaussianModel):
     """x_{k+1} = F x_k + B u_k + G w_k,  y_k = H x_k + D u_k + v_k.
 
     Any matrix may carry a leading time axis (shape (T, ...)) for a time-varying model. ``G``
-    defaults to the identity (then Q is n x n); ``B``, ``D`` default to no input.
+    defaults to the identity (then Q is n x n); ``B``, ``D`` default to no input. The filters
+    read Q and R as their symmetric parts (:func:`noise_cov`).
     """
 
     F: Float[Array, "*T n n"]
@@ -130,10 +149,10 @@ class LinearGaussian(AbstractGaussianModel):
     def process_noise(self, x, u, k):
         n = self.F.shape[-1]
         G = jnp.eye(n, dtype=self.F.dtype) if self.G is None else at_time(self.G, k)
-        return G, at_time(self.Q, k)
+        return G, noise_cov(self.Q, k)
 
     def measurement_cov(self, k):
-        return at_time(self.R, k)
+        return noise_cov(self.R, k)
 
     def transition_jacobian(self, x, u, k):
         return self.f(x, u, k), at_time(self.F, k)
@@ -169,7 +188,8 @@ class NonlinearGaussian(AbstractGaussianModel):
     - ``noise_on_input=True``: the measured input is noisy, x_{k+1} = f(x_k, u_k + w_k), so
       G = df/du at (x, u) and Q is the covariance of the input noise (eq 27 of the SVD-EKF paper).
 
-    ``Q`` and ``R`` may carry a leading time axis.
+    ``Q`` and ``R`` may carry a leading time axis; the filters read them as their symmetric
+    parts (:func:`noise_cov`).
     """
 
     transition_fn: Callable
@@ -197,7 +217,7 @@ class NonlinearGaussian(AbstractGaussianModel):
         return call_with_optional(self.observation_fn, x, u, k)
 
     def process_noise(self, x, u, k):
-        Q = at_time(self.Q, k)
+        Q = noise_cov(self.Q, k)
         if self.noise_on_input:
             G = jax.jacfwd(lambda v: self.f(x, v, k))(u)
         elif self.noise_gain is not None:
@@ -207,7 +227,7 @@ class NonlinearGaussian(AbstractGaussianModel):
         return G, Q
 
     def measurement_cov(self, k):
-        return at_time(self.R, k)
+        return noise_cov(self.R, k)
 
     def transition_jacobian(self, x, u, k):
         if self.jac_f is None:

@@ -273,6 +273,28 @@ def test_status_flags_nonfinite_inside_jit():
 SVD_FORMS = [SVDEKF(), ImprovedSVDKF(), je.UKF(form="svd"), je.CubatureKF(form="svd")]
 
 
+def test_a_non_symmetric_covariance_under_jit_is_read_as_its_symmetric_part_by_every_filter():
+    """Traced, a non-symmetric Q or R passes the argument checks. The filters that factor it
+    read its lower triangle, the Kalman filter the symmetric part of S: three answers, each with
+    status OK. The models now hand every filter the symmetric part."""
+    model, prior, sim = linear_problem(seed=5, n=3, m=2, T=8)
+    skew = lambda a: a - a.T
+    rng = np.random.default_rng(5)
+    tilted = je.LinearGaussian(
+        model.F,
+        model.H,
+        model.Q + 0.05 * skew(jnp.asarray(rng.normal(size=(3, 3)))),
+        model.R + 0.05 * skew(jnp.asarray(rng.normal(size=(2, 2)))),
+    )
+    estimators = (je.KalmanFilter(), je.SquareRootKF(), je.SVDEKF(), je.UKF(),
+                  je.SteadyStateKalmanFilter())  # fmt: skip
+    for estimator in estimators:
+        run = jax.jit(lambda m, estimator=estimator: je.run(estimator, m, sim.y, prior=prior))
+        want, got = run(model), run(tilted)
+        assert int(got.any_status) == 0
+        np.testing.assert_allclose(got.mean, want.mean, rtol=1e-12, atol=1e-12)
+
+
 @pytest.mark.parametrize(
     "estimator", SVD_FORMS, ids=["SVDEKF", "ImprovedSVDKF", "UKF-svd", "CKF-svd"]
 )

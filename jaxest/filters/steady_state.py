@@ -102,8 +102,9 @@ def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
     a ``ValueError`` naming them; under ``jit`` a solution whose status is not OK gives NaN, and
     the gain's ``status`` says why (``ok``: it is OK)."""
     check_time_invariant(model)
-    solution = solve_filter_dare(model.F, model.H, _state_noise_cov(model), model.R)
-    return _gain(model.F, model.H, model.R, solution)
+    R = model.measurement_cov(0)
+    solution = solve_filter_dare(model.F, model.H, _state_noise_cov(model), R)
+    return _gain(model.F, model.H, R, solution)
 
 
 @eqx.filter_jit
