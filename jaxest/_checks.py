@@ -143,13 +143,28 @@ def check_symmetric_definite(name: str, a: np.ndarray, *, strict: bool, eps: flo
     """Symmetric and positive definite (``strict``) or semidefinite, for a concrete array held in
     a precision of machine epsilon ``eps``: semidefinite allows eigenvalues down to -max(1e-12,
     10 n eps) times the largest entry, a float32 product G Q G^T (or g g^T) of rank below n
-    rounds to eigenvalues of -1e-9 relative, which a float64 tolerance refused."""
+    rounds to eigenvalues of -1e-9 relative, which a float64 tolerance refused.
+
+    Positive definite means definite beyond rounding: the matrix scaled to a unit diagonal (its
+    correlation matrix, so that states in different units are not taken for a near-singular
+    one) has its smallest eigenvalue above 10 n eps. A rank-one g g^T rounds to a smallest
+    eigenvalue of +1e-20, which passed, and the filters that factor it returned NaN."""
     scale = max(np.max(np.abs(a)), np.finfo(np.float64).tiny)
     if np.max(np.abs(a - np.swapaxes(a, -1, -2))) > 1e-6 * scale:
         raise ValueError(f"{name}: must be symmetric")
-    smallest = np.min(np.linalg.eigvalsh(0.5 * (a + np.swapaxes(a, -1, -2))))
+    a = 0.5 * (a + np.swapaxes(a, -1, -2))
+    smallest = np.min(np.linalg.eigvalsh(a))
     if strict and smallest <= 0:
         raise ValueError(f"{name}: must be positive definite (smallest eigenvalue {smallest:.3g})")
+    if strict:
+        root = np.sqrt(np.diagonal(a, axis1=-2, axis2=-1))  # positive: a's eigenvalues are
+        correlation = np.min(np.linalg.eigvalsh(a / (root[..., :, None] * root[..., None, :])))
+        if correlation <= 10 * a.shape[-1] * eps:
+            raise ValueError(
+                f"{name}: must be positive definite beyond rounding: singular to {eps:.2g} "
+                f"precision (smallest eigenvalue {smallest:.3g}, {correlation:.3g} scaled to a "
+                f"unit diagonal)"
+            )
     if not strict and smallest < -max(1e-12, 10 * a.shape[-1] * eps) * scale:
         raise ValueError(
             f"{name}: must be positive semidefinite (smallest eigenvalue {smallest:.3g})"

@@ -374,6 +374,7 @@ def simulate(
     """
     from jaxest._checks import (  # _checks imports this
         check_inputs,
+        check_key,
         check_matrix,
         first_input,
         model_shapes,
@@ -388,6 +389,7 @@ def simulate(
         ) from None
     if steps < 0:
         raise ValueError(f"num_steps: must not be negative, got {steps}")
+    check_key("key", key)  # JAX's own errors for an int seed or a batch of keys named none
     if not isinstance(x0, Gaussian):
         x0 = jnp.asarray(x0)  # an initial state given as a list or a number, too
     start = x0.mean if isinstance(x0, Gaussian) else x0

@@ -393,7 +393,7 @@ def test_model_shapes_are_traced_once_per_signature():
 
 def test_simulate_takes_any_integer_step_count_and_rejects_others():
     """``num_steps`` may be a Python, NumPy or concrete JAX integer (the same draw); a float or
-    a negative count raises naming it."""
+    a negative count raises naming it, as does a key that is not one PRNG key."""
     model, _, prior = good()
     key = jax.random.PRNGKey(0)
     draws = [je.simulate(model, prior, n, key).y for n in (6, np.int64(6), jnp.int32(6))]
@@ -402,6 +402,10 @@ def test_simulate_takes_any_integer_step_count_and_rejects_others():
     for bad in (6.0, -1):
         with pytest.raises(ValueError, match="num_steps"):
             je.simulate(model, prior, bad, key)
+    # an int seed, an int64 vector or a batch of keys raised JAX's errors, which named no argument
+    for bad in (0, jnp.arange(2), jax.random.split(key, 3)):
+        with pytest.raises(ValueError, match="^key: expected"):
+            je.simulate(model, prior, 6, bad)
 
 
 def test_missing_rows_are_skipped_exactly():
@@ -465,6 +469,30 @@ def test_zero_process_noise_rejected_where_the_filter_needs_q_positive(Filter):
     for Other in set(GAUSSIAN_FILTERS) - set(NEED_POSITIVE_Q):
         other = je.run(Other(), zero_q, ys + 1.0, prior=prior)
         np.testing.assert_allclose(other.loglik, reference.loglik, rtol=1e-10)
+
+
+def test_positive_definite_means_beyond_rounding_whatever_the_units():
+    """A rank-one Q = g g^T rounds to a smallest eigenvalue of +1.4e-20, which passed as
+    positive definite, and the filters that factor Q returned NaN. Singular beyond rounding is
+    judged on the matrix scaled to a unit diagonal, so states in units 1e12 apart still pass."""
+    model, ys, prior = good()
+    g = jnp.asarray([0.01, 0.1])
+    rank_one = je.LinearGaussian(
+        model.F, model.H, jnp.asarray([[1e-4, 1e-3], [1e-3, 1e-2]]), model.R
+    )
+    assert np.min(np.linalg.eigvalsh(np.asarray(rank_one.Q))) > 0  # g g^T, rounded
+    np.testing.assert_allclose(rank_one.Q, jnp.outer(g, g), rtol=1e-15)
+    with pytest.raises(ValueError, match="^model.Q: must be positive definite beyond rounding"):
+        je.run(je.SquareRootKF(), rank_one, ys, prior=prior)
+    with pytest.raises(ValueError, match="^prior.cov: must be positive definite beyond rounding"):
+        je.run(KalmanFilter(), model, ys, prior=je.Gaussian(prior.mean, rank_one.Q))
+    units = jnp.diag(jnp.asarray([1e-6, 1e6]))  # the same system, its second state in other units
+    scaled = je.LinearGaussian(units @ model.F @ jnp.linalg.inv(units), model.H @ jnp.linalg.inv(units),
+                               units @ model.Q @ units, model.R)  # fmt: skip
+    scaled_prior = je.Gaussian(units @ prior.mean, units @ prior.cov @ units)
+    want = je.run(je.SquareRootKF(), model, ys, prior=prior)
+    got = je.run(je.SquareRootKF(), scaled, ys, prior=scaled_prior)
+    np.testing.assert_allclose(got.loglik, want.loglik, rtol=1e-9)
 
 
 class OwnModel(je.AbstractGaussianModel):
