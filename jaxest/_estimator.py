@@ -159,6 +159,12 @@ class AbstractAssociativeEstimator(AbstractEstimator):
         """The output of step ``k`` from the prefix elements (prior, 0, ..., k-1), ``previous``
         (the prior's own element at k = 0), and (prior, 0, ..., k), ``prefix``."""
 
+    def check_outputs(self, outputs, first, final):
+        """The outputs of a whole associative run, with the status of what only the whole run
+        can show (``first``: the prior's element, ``final``: the last prefix); default: as they
+        are."""
+        return outputs
+
     def init(self, model, prior):
         return self.prior_element(model, prior)
 
@@ -181,4 +187,5 @@ def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, k
     """All step outputs and the final prefix of an associative estimator, in O(log T) depth."""
     previous, prefixes = associative_prefixes(estimator, model, prior, ks, ys, us)
     outputs = jax.vmap(lambda p, q, k: estimator.output(model, p, q, k))(previous, prefixes, ks)
-    return outputs, jax.tree.map(lambda a: a[-1], prefixes)
+    first, final = (jax.tree.map(lambda a: a[i], s) for i, s in ((0, previous), (-1, prefixes)))
+    return estimator.check_outputs(outputs, first, final), final

@@ -70,14 +70,24 @@ prefix's log p(y_0..y_{k-1}), so in exact arithmetic
 the step's term that the sequential update computes from x(k|k-1), P(k|k-1). The two sides come
 from different arithmetic (a tree of combinations against one update), and their largest
 discrepancy over the steps, relative to |loglik(prefix)| + |loglik(previous)| + |term| + 1, was
-0.17-290 times the relative error of the total log-likelihood against a float64 sequential
-filter where it was below 1 (T = 10^4, R from 10^-1 to 10^-6 x SPD, both forms, float32 and
-float64; ``benchmarks/parallel_accuracy.py``, docs/parallel.md). Where it exceeds sqrt(eps) --
+0.09-150 times the relative error of the total log-likelihood against a float64 sequential
+filter where it was below 0.5 (T = 10^4, R from 10^-1 to 10^-6 x SPD, both forms, float32 and
+float64; ``benchmarks/parallel_accuracy.py``, docs/parallel.md, 2026-12-01). Where it exceeds sqrt(eps) --
 the relation holds to fewer than half the digits of the dtype -- the step's status gets
 ``ParallelStatus.LOGLIK_INCONSISTENT``. That is what the standard form does in float32 once R
 is small (eq (3)'s c is a difference of large terms): at R = 10^-4 x SPD its log-likelihood
-comes out +8.4e4 for -3.2e4, and at R = 10^-2 x SPD it is off by 2.9e-4, both flagged; the
-square-root form stays unflagged down to R = 10^-4 x SPD in float32.
+comes out +5.6e5 for -3.2e4, and at R = 10^-2 x SPD it is off by 2.4e-3, both flagged; the
+square-root form stays unflagged down to R = 10^-4 x SPD in float32 (docs/parallel.md).
+
+Summed over the run, eq (5) reads
+
+    loglik(final) - loglik(prior) = sum over k of the steps' terms,                         (5')
+
+and the associative run checks that too, relative to |loglik(final)| + |loglik(prior)| + the
+sum of |term| + 1, flagging the last step. A step's check cannot see a drift spread over many
+steps: the standard form in float32 (6 states, 3 measurements, R from 10^-2 to 1, T = 500) was
+off by 0.015 nats a step, each within its step's tolerance of about 1.7 nats, and by 7.4 nats
+(2.9e-3 relative) in all, with status OK.
 """
 
 from __future__ import annotations
@@ -125,12 +135,18 @@ def loglik_discrepancy(prefix, before, term):
     return jnp.abs(prefix - before - term), scale
 
 
-def loglik_consistency_status(prefix, before, term) -> jnp.ndarray:
-    """``LOGLIK_INCONSISTENT`` where eq (5) fails: the discrepancy exceeds sqrt(eps) of the
-    scale (:func:`loglik_discrepancy`)."""
-    tolerance = jnp.sqrt(jnp.finfo(jnp.result_type(term)).eps)
-    discrepancy, scale = loglik_discrepancy(prefix, before, term)
+def loglik_consistency_status(discrepancy, scale) -> jnp.ndarray:
+    """``LOGLIK_INCONSISTENT`` where eq (5) or (5') fails: the discrepancy exceeds sqrt(eps) of
+    the scale (:func:`loglik_discrepancy`, :func:`run_loglik_discrepancy`)."""
+    tolerance = jnp.sqrt(jnp.finfo(jnp.result_type(discrepancy)).eps)
     return status_where(~(discrepancy <= tolerance * scale), ParallelStatus.LOGLIK_INCONSISTENT)
+
+
+def run_loglik_discrepancy(first, final, terms):
+    """Eq (5') of the module docstring, |loglik(final) - loglik(first) - sum of ``terms``|, and
+    its scale |loglik(final)| + |loglik(first)| + sum |terms| + 1."""
+    scale = jnp.abs(final) + jnp.abs(first) + jnp.sum(jnp.abs(terms)) + 1
+    return jnp.abs(final - first - jnp.sum(terms)), scale
 
 
 class ParallelFilterResult(FilterResult):
@@ -336,8 +352,18 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
         # the input's part of y_k is already removed, so u = None; the prediction is discarded
         _, _, out = self._update.update_predict(model, before.mean, factor, k, prefix.y, None)
         out = out.with_covariances_checked()
-        inconsistent = loglik_consistency_status(after.loglik, before.loglik, out.loglik)
+        inconsistent = loglik_consistency_status(
+            *loglik_discrepancy(after.loglik, before.loglik, out.loglik)
+        )
         return eqx.tree_at(lambda o: o.status, out, out.status | inconsistent)
+
+    def check_outputs(self, outputs, first: ParallelElement, final: ParallelElement):
+        """Eq (5') over the whole run, its flag on the last step."""
+        inconsistent = loglik_consistency_status(
+            *run_loglik_discrepancy(first.element.loglik, final.element.loglik, outputs.loglik)
+        )
+        status = outputs.status.at[-1].set(outputs.status[-1] | inconsistent)
+        return eqx.tree_at(lambda o: o.status, outputs, status)
 
     def _gaussian(self, prefix: ParallelElement) -> GaussianState:
         element = prefix.element
