@@ -72,10 +72,10 @@ from different arithmetic (a tree of combinations against one update), and their
 discrepancy over the steps, relative to |loglik(prefix)| + |loglik(previous)| + |term| + 1, was
 0.09-150 times the relative error of the total log-likelihood against a float64 sequential
 filter where it was below 0.5 (T = 10^4, R from 10^-1 to 10^-6 x SPD, both forms, float32 and
-float64; ``benchmarks/parallel_accuracy.py``, docs/parallel.md, 2026-12-01). Where it exceeds sqrt(eps) --
-the relation holds to fewer than half the digits of the dtype -- the step's status gets
-``ParallelStatus.LOGLIK_INCONSISTENT``. That is what the standard form does in float32 once R
-is small (eq (3)'s c is a difference of large terms): at R = 10^-4 x SPD its log-likelihood
+float64; ``benchmarks/parallel_accuracy.py``, docs/parallel.md, 2026-12-01). Where it exceeds
+sqrt(eps) -- the relation holds to fewer than half the digits of the dtype -- the step's status
+gets ``ParallelStatus.LOGLIK_INCONSISTENT``. That is what the standard form does in float32 once
+R is small (eq (3)'s c is a difference of large terms): at R = 10^-4 x SPD its log-likelihood
 comes out +5.6e5 for -3.2e4, and at R = 10^-2 x SPD it is off by 2.4e-3, both flagged; the
 square-root form stays unflagged down to R = 10^-4 x SPD in float32 (docs/parallel.md).
 
