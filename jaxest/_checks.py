@@ -411,11 +411,26 @@ def check_noise_values(model, x, u, T, m, q, positive_Q):
     """Q (R) symmetric positive semidefinite (definite), named as the model holds them."""
     if isinstance(model, LinearGaussian | NonlinearGaussian):
         check_matrix("model.R", model.R, (m, m), spd=True)
-        check_matrix("model.Q", model.Q, (q, q), psd=not positive_Q, spd=positive_Q)
+        check_process_noise("model.Q", model.Q, q, positive_Q)
         check_time_axes(model, 0, T)
         return
     if not all(is_concrete(a) for a in jax.tree.leaves((model, x, u))):
         return
     _, Q = model.process_noise(x, u, 0)
     check_matrix("model.measurement_cov(k=0)", model.measurement_cov(0), (m, m), spd=True)
-    check_matrix("model.process_noise(k=0) Q", Q, (q, q), psd=not positive_Q, spd=positive_Q)
+    check_process_noise("model.process_noise(k=0) Q", Q, q, positive_Q)
+
+
+def check_process_noise(name: str, Q, q: int, positive: bool) -> None:
+    """Q symmetric positive semidefinite, and definite where the filter factors it
+    (``positive``), saying what to do with a rank-deficient one."""
+    check_matrix(name, Q, (q, q), psd=True)
+    if not positive:
+        return
+    try:
+        check_matrix(name, Q, (q, q), spd=True)
+    except ValueError as error:
+        raise ValueError(
+            f"{error}; this filter factors Q: give a rank-deficient noise as G (n x q) with a "
+            f"positive definite q x q Q, or use KalmanFilter, EKF or an SVD filter"
+        ) from None

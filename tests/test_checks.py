@@ -482,7 +482,9 @@ def test_positive_definite_means_beyond_rounding_whatever_the_units():
     )
     assert np.min(np.linalg.eigvalsh(np.asarray(rank_one.Q))) > 0  # g g^T, rounded
     np.testing.assert_allclose(rank_one.Q, jnp.outer(g, g), rtol=1e-15)
-    with pytest.raises(ValueError, match="^model.Q: must be positive definite beyond rounding"):
+    with pytest.raises(
+        ValueError, match="^model.Q: must be positive definite beyond rounding.*as G"
+    ):
         je.run(je.SquareRootKF(), rank_one, ys, prior=prior)
     with pytest.raises(ValueError, match="^prior.cov: must be positive definite beyond rounding"):
         je.run(KalmanFilter(), model, ys, prior=je.Gaussian(prior.mean, rank_one.Q))
