@@ -187,5 +187,6 @@ def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, k
     """All step outputs and the final prefix of an associative estimator, in O(log T) depth."""
     previous, prefixes = associative_prefixes(estimator, model, prior, ks, ys, us)
     outputs = jax.vmap(lambda p, q, k: estimator.output(model, p, q, k))(previous, prefixes, ks)
-    first, final = (jax.tree.map(lambda a: a[i], s) for i, s in ((0, previous), (-1, prefixes)))
+    first = jax.tree.map(lambda a: a[0], previous)  # the prior's element
+    final = jax.tree.map(lambda a: a[-1], prefixes)
     return estimator.check_outputs(outputs, first, final), final

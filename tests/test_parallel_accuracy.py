@@ -42,8 +42,9 @@ def test_rows_and_the_flag_agree_with_the_recomputed_discrepancy(tmp_path):
 def test_a_drift_spread_over_the_steps_is_flagged_on_the_last():
     """Float32 standard form, 6 states, 3 measurements (R from 10^-2 to 1), T = 500, 5 % of the
     entries missing: the log-likelihood was 3.6 nats off (1.3e-3 relative) with status OK, each
-    step's discrepancy within its tolerance (0.015 nats a step in the audit's like system). Eq (5') over the run flags the last step; the
-    square-root form on the same data agrees with float64 and is not flagged."""
+    step's discrepancy within its tolerance (0.015 nats a step in the audit's like system). Eq
+    (5') over the run flags the last step; the square-root form on the same data agrees with
+    float64 and is not flagged."""
     rng = np.random.default_rng(3)
     n, m, T = 6, 3, 500
     U, V = (np.linalg.qr(rng.normal(size=(n, n)))[0] for _ in range(2))

@@ -110,8 +110,8 @@ def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
 @eqx.filter_jit
 def _state_noise_cov(model: LinearGaussian) -> Float[Array, "n n"]:
     """Gamma Q Gamma^T, the covariance of the noise on the state, compiled as one program."""
-    G, _ = model.process_noise(None, None, 0)
-    return symmetrize(G @ model.Q @ G.T)
+    G, Q = model.process_noise(None, None, 0)
+    return symmetrize(G @ Q @ G.T)
 
 
 @jax.jit
