@@ -171,6 +171,13 @@ def check_symmetric_definite(name: str, a: np.ndarray, *, strict: bool, eps: flo
         )
 
 
+#: what a user who passed one input for the whole run (no time axis) needs to hear
+_ONE_INPUT_PER_STEP = (
+    "; inputs hold u_k for every step on a leading time axis (a constant u for T steps is "
+    "jnp.broadcast_to(u, (T,) + u.shape))"
+)
+
+
 def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""):
     """``value`` must be (T, dim); ``length`` is the T it must match (``None``: any)."""
     if value is None:
@@ -179,7 +186,10 @@ def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""
     if len(shape) != 2:
         raise ValueError(f"{name}: expected shape (T, {dim if dim else 'd'}), got {shape}")
     if length is not None and shape[0] != length:
-        raise ValueError(f"{name}: has {shape[0]} time steps but the measurements have {length}")
+        raise ValueError(
+            f"{name}: has {shape[0]} time steps but the measurements have {length}"
+            + (_ONE_INPUT_PER_STEP if name == "inputs" else "")
+        )
     if dim is not None and shape[1] != dim:
         raise ValueError(f"{name}: expected {dim} column(s){dim_source}, got {shape[1]}")
 
@@ -199,7 +209,7 @@ def check_inputs(inputs, length: int, steps: str) -> None:
                 f"{name}: expected a leading time axis of {length} steps, got a scalar"
             )
         if shape[0] != length:
-            raise ValueError(f"{name}: has {shape[0]} time steps but {steps}")
+            raise ValueError(f"{name}: has {shape[0]} time steps but {steps}{_ONE_INPUT_PER_STEP}")
 
 
 def check_measurements(ys):

@@ -92,6 +92,9 @@ def test_mismatched_input_length():
     model = je.LinearGaussian(model.F, model.H, model.Q, model.R, B=jnp.ones((2, 1)))
     with pytest.raises(ValueError, match="inputs: has 4 time steps but the measurements have 10"):
         je.run(KalmanFilter(), model, ys, inputs=jnp.zeros((4, 1)), prior=prior)
+    # one input for the whole run, with no time axis: the message says how to give one per step
+    with pytest.raises(ValueError, match=r"has 1 time steps .* jnp\.broadcast_to\(u, \(T,\)"):
+        je.run(KalmanFilter(), model, ys, inputs=jnp.ones((1,)), prior=prior)
 
 
 def test_inputs_may_be_a_pytree_and_missing_inputs_are_named():
