@@ -159,11 +159,11 @@ class AbstractAssociativeEstimator(AbstractEstimator):
         """The output of step ``k`` from the prefix elements (prior, 0, ..., k-1), ``previous``
         (the prior's own element at k = 0), and (prior, 0, ..., k), ``prefix``."""
 
-    def check_outputs(self, outputs, first, final):
-        """The outputs of a whole associative run, with the status of what only the whole run
-        can show (``first``: the prior's element, ``final``: the last prefix); default: as they
-        are."""
-        return outputs
+    def finish_run(self, outputs, first, final):
+        """``(outputs, final state)`` of a whole associative run from its outputs, the prior's
+        element ``first`` and the last prefix ``final``: where the estimator adds what only the
+        whole run can show (a status, a total); default: ``(outputs, final)``."""
+        return outputs, final
 
     def init(self, model, prior):
         return self.prior_element(model, prior)
@@ -184,9 +184,9 @@ def associative_prefixes(estimator: AbstractAssociativeEstimator, model, prior, 
 
 
 def associative_outputs(estimator: AbstractAssociativeEstimator, model, prior, ks, ys, us):
-    """All step outputs and the final prefix of an associative estimator, in O(log T) depth."""
+    """All step outputs and the final state of an associative estimator, in O(log T) depth."""
     previous, prefixes = associative_prefixes(estimator, model, prior, ks, ys, us)
     outputs = jax.vmap(lambda p, q, k: estimator.output(model, p, q, k))(previous, prefixes, ks)
     first = jax.tree.map(lambda a: a[0], previous)  # the prior's element
     final = jax.tree.map(lambda a: a[-1], prefixes)
-    return estimator.check_outputs(outputs, first, final), final
+    return estimator.finish_run(outputs, first, final)

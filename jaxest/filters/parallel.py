@@ -70,14 +70,15 @@ prefix's log p(y_0..y_{k-1}), so in exact arithmetic
 the step's term that the sequential update computes from x(k|k-1), P(k|k-1). The two sides come
 from different arithmetic (a tree of combinations against one update), and their largest
 discrepancy over the steps, relative to |loglik(prefix)| + |loglik(previous)| + |term| + 1, was
-0.09-150 times the relative error of the total log-likelihood against a float64 sequential
-filter where it was below 0.5 (T = 10^4, R from 10^-1 to 10^-6 x SPD, both forms, float32 and
-float64; ``benchmarks/parallel_accuracy.py``, docs/parallel.md, 2026-12-01). Where it exceeds
-sqrt(eps) -- the relation holds to fewer than half the digits of the dtype -- the step's status
-gets ``ParallelStatus.LOGLIK_INCONSISTENT``. That is what the standard form does in float32 once
-R is small (eq (3)'s c is a difference of large terms): at R = 10^-4 x SPD its log-likelihood
-comes out +5.6e5 for -3.2e4, and at R = 10^-2 x SPD it is off by 2.4e-3, both flagged; the
-square-root form stays unflagged down to R = 10^-4 x SPD in float32 (docs/parallel.md).
+0.09-290 times the relative error of the last prefix's (combined) log-likelihood against a
+float64 sequential filter where that was below 0.5 (T = 10^4, R from 10^-1 to 10^-6 x SPD, both
+forms, float32 and float64; ``benchmarks/parallel_accuracy.py``, docs/parallel.md, two runs on
+2026-12-01). Where it exceeds sqrt(eps) -- the relation holds to fewer than half the digits of
+the dtype -- the step's status gets ``ParallelStatus.LOGLIK_INCONSISTENT``. That is what the
+standard form does in float32 once R is small (eq (3)'s c is a difference of large terms): at
+R = 10^-4 x SPD its combined log-likelihood came out +5.6e5 for -3.2e4, and at R = 10^-2 x SPD
+it was off by 2.4e-3, both flagged, and its means were off by 5 % at 10^-4; the square-root
+form stays unflagged down to R = 10^-4 x SPD in float32 (docs/parallel.md).
 
 Summed over the run, eq (5) reads
 
@@ -88,6 +89,24 @@ sum of |term| + 1, flagging the last step. A step's check cannot see a drift spr
 steps: the standard form in float32 (6 states, 3 measurements, R from 10^-2 to 1, T = 500) was
 off by 0.015 nats a step, each within its step's tolerance of about 1.7 nats, and by 7.4 nats
 (2.9e-3 relative) in all, with status OK.
+
+The total. The sum of the terms is the log-likelihood the filter reports, as the sequential
+filters do:
+
+    log p(y_0..y_{T-1}) = loglik(prior) + sum over k of log N(y_k; y(k|k-1), S_k),             (6)
+
+in both paths (a parallel run sums the terms in O(log T) depth; a sequential one adds each as
+it goes), and the combined log-likelihood of the last prefix serves as eq (5')'s check. Each
+term is computed from the prefix's x(k|k-1), P(k|k-1) by the sequential update, so it carries
+the errors of the means and covariances, not the cancellation of eq (3)'s c. Against the
+float64 sequential filter (T = 10^4, R = s x SPD, ``benchmarks/parallel_accuracy.py``,
+2026-12-01) the sum's relative error was below that of the combined total in the standard
+form (float32, s = 10^-3: 8.1e-6 against 0.73; float64, s = 10^-5: 6.5e-13 against 3.7e-6),
+but at float32, s = 10^-6, where the means are NaN (flagged ``NONFINITE``); in the square-root
+form the two were alike (float32: within a factor of 4, s = 10^-6: 4.0e-3 against 1.0e-3, both
+flagged; float64: both below 4e-13). On the drift problem of ``tests/test_parallel_accuracy.py``
+(like the one above; the combined total 3.6 nats off) the sum is 0.005 nats off in a parallel
+run and 0.002 in a sequential one, which had reported the combined total too (0.16 nats off).
 """
 
 from __future__ import annotations
@@ -121,8 +140,10 @@ ParallelStatus = Status.extend(
     LOGLIK_INCONSISTENT=(
         4,
         "the parallel filter's combined log-likelihood disagrees with the sequential update's "
-        "term for this step (module docstring, eq (5)): the combination lost precision; use the "
-        "square-root form (ParallelKalmanFilter(square_root=True)) or float64",
+        "terms (module docstring, eq (5), on the last step eq (5')): the combinations lost "
+        "precision, and the means and covariances they give (and the terms computed from them) "
+        "may have too; use the square-root form (ParallelKalmanFilter(square_root=True)) or "
+        "float64",
     ),
 )
 """The parallel Kalman filter's status flags: the core's and LOGLIK_INCONSISTENT."""
@@ -357,20 +378,24 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
         )
         return eqx.tree_at(lambda o: o.status, out, out.status | inconsistent)
 
-    def check_outputs(self, outputs, first: ParallelElement, final: ParallelElement):
-        """Eq (5') over the whole run, its flag on the last step."""
+    def finish_run(self, outputs, first: ParallelElement, final: ParallelElement):
+        """Eq (5') over the whole run, its flag on the last step; the final state's
+        log-likelihood is the prior's plus the steps' terms, eq (6)."""
         inconsistent = loglik_consistency_status(
             *run_loglik_discrepancy(first.element.loglik, final.element.loglik, outputs.loglik)
         )
         status = outputs.status.at[-1].set(outputs.status[-1] | inconsistent)
-        return eqx.tree_at(lambda o: o.status, outputs, status)
+        outputs = eqx.tree_at(lambda o: o.status, outputs, status)
+        return outputs, self._gaussian(final, first.element.loglik + jnp.sum(outputs.loglik))
 
-    def _gaussian(self, prefix: ParallelElement) -> GaussianState:
+    def _gaussian(self, prefix: ParallelElement, loglik) -> GaussianState:
+        """The state x(k+1|k), P(k+1|k) that ``prefix`` holds, with the log-likelihood so far."""
         element = prefix.element
-        return GaussianState(element.mean, self._factor_type(element.factor), element.loglik)
+        return GaussianState(element.mean, self._factor_type(element.factor), loglik)
 
     def init(self, model, prior) -> GaussianState:
-        return self._gaussian(self.prior_element(model, prior))
+        first = self.prior_element(model, prior)
+        return self._gaussian(first, first.element.loglik)
 
     def resume(self, model, state) -> GaussianState:
         """Another Gaussian filter's state with P in this filter's form."""
@@ -384,11 +409,10 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
             self._no_measurement(model, state.mean.dtype),
         )
         prefix = self.combine(previous, self.element(model, k, y, u))
-        return self._gaussian(prefix), self.output(model, previous, prefix, k)
+        output = self.output(model, previous, prefix, k)
+        return self._gaussian(prefix, state.loglik + output.loglik), output  # eq (6)
 
     def result(self, outputs, final_state) -> FilterResult:
-        if isinstance(final_state, ParallelElement):
-            final_state = self._gaussian(final_state)
         return AbstractGaussianFilter.result(self, outputs, final_state)
 
     def check(self, model, ys, inputs, prior) -> None:
