@@ -2,7 +2,6 @@
 loop, the containment guarantee, alarms, the unbounded-set behaviour, transforms, the study."""
 
 import functools
-import json
 
 import jax
 import jax.numpy as jnp
@@ -421,36 +420,6 @@ def test_arguments_are_checked_before_tracing():
     result = SMFResult(None, center=jnp.zeros((5, 2)), shape=jnp.ones((5, 2, 2)))
     with pytest.raises(ValueError, match="^states: expected one state per step, shape \\(5, 2\\)"):
         result.contains(jnp.zeros((4, 2)))
-
-
-@pytest.mark.slow
-def test_study_quick_writes_summary(tmp_path):
-    summary = smf_fdi.run(tmp_path, runs=8, seed=0, quick=True, options={})
-    written = json.loads((tmp_path / "smf-fdi" / "summary.json").read_text())
-    assert written["runs"] == 8 and written["containment_rate"] == 1.0
-    for key in ("detection", "isolation_method1", "isolation_method2"):
-        for L in ("0", "1", "2"):
-            entry = written[key][L]
-            assert set(entry) >= {
-                "missed_rate",
-                "false_alarm_rate",
-                "min_delay",
-                "max_delay",
-                "mean_delay",
-            }
-            assert entry["false_alarm_rate"] == 0.0
-    assert 0.0 <= written["ekf_chi2"]["false_alarm_rate"] <= 1.0 and "wall_seconds" in written
-    assert summary["automatic_bound_check"]["same_detection_flags"]
-    for entry in written["containment_stress"].values():
-        assert entry["containment_rate"] == 1.0 and entry["steps_outside"] == 0
-        assert entry["unflagged_not_positive_definite"] == 0
-    for name in (
-        "fig1_smf_bounds.png",
-        "fig2_ekf_bounds.png",
-        "fig3_remainder_bound.png",
-        "tables.md",
-    ):
-        assert (tmp_path / "smf-fdi" / name).exists()
 
 
 def test_bounds_given_as_python_numbers_or_lists():

@@ -1,9 +1,10 @@
-"""The smf-fdi study's Monte Carlo runs its 200 runs under one ``vmap`` (issue 12): its compiled
-programs call no LAPACK kernel (jaxlib 0.10's CPU thread pool can deadlock on two concurrent
-batched LAPACK calls) and hand no fusion to YNNPACK, and the whole study runs 20 times in a row
-within a time limit, its runs sharded over two CPU devices as ``reproduce`` runs it, with the
-flags it gives on one device."""
+"""The smf-fdi study's Monte Carlo runs its 200 runs under one ``vmap`` (issue 12): the quick
+study writes its summary, tables and figures, and the programs it ran call no LAPACK kernel
+(jaxlib 0.10's CPU thread pool can deadlock on two concurrent batched LAPACK calls) and hand no
+fusion to YNNPACK; and the whole study runs 20 times in a row within a time limit, its runs
+sharded over two CPU devices as ``reproduce`` runs it, with the flags it gives on one device."""
 
+import json
 import os
 import subprocess
 import sys
@@ -14,29 +15,78 @@ import pytest
 
 from jaxest import xla_flags
 from jaxest.studies import smf_fdi
-from tests.lowering import custom_call_targets, fusion_kinds
+from tests.lowering import custom_call_targets, fusion_kinds, programs_compiled
 
 REPEATS = 20
 TIME_LIMIT_S = 600
+QUICK_RUNS = 8
 
 
-@pytest.mark.parametrize("closed_form_bound", [True, False])
-def test_compiled_study_calls_no_lapack_and_no_ynnpack(closed_form_bound):
+def assert_no_lapack_and_no_ynnpack(compiled_texts):
     """No LAPACK call (the deadlock above), and no fusion handed to YNNPACK, which ran the study
     and the containment stress 12 % slower (``batched_over_runs``)."""
-    keys = jax.random.split(jax.random.key(0), 8)
-    programs = (
-        smf_fdi.monte_carlo_function(closed_form_bound),
-        smf_fdi.containment_stress_function(5.0),
-    )
-    if not closed_form_bound:  # the study's check of the automatic bound, sharded as well
-        programs += (smf_fdi.automatic_bound_function(),)
-    texts = [program.lower(keys).compile().as_text() for program in programs]
-    calls = {call for text in texts for call in custom_call_targets(text)}
-    kinds = {kind for text in texts for kind in fusion_kinds(text)}
+    calls = {call for text in compiled_texts for call in custom_call_targets(text)}
+    kinds = {kind for text in compiled_texts for kind in fusion_kinds(text)}
     assert not [c for c in calls if "lapack" in c.lower()], calls
     if xla_flags.compile_options(xla_flags.NO_YNN_FUSION) is not None:
         assert not [k for k in kinds if "ynn" in k], kinds
+
+
+@pytest.mark.slow
+def test_quick_study_writes_the_summary_from_programs_without_lapack_or_ynnpack(tmp_path):
+    summary = smf_fdi.run(tmp_path, runs=QUICK_RUNS, seed=0, quick=True, options={})
+    written = json.loads((tmp_path / "smf-fdi" / "summary.json").read_text())
+    assert written["runs"] == QUICK_RUNS and written["containment_rate"] == 1.0
+    for key in ("detection", "isolation_method1", "isolation_method2"):
+        for L in ("0", "1", "2"):
+            entry = written[key][L]
+            assert set(entry) >= {
+                "missed_rate",
+                "false_alarm_rate",
+                "min_delay",
+                "max_delay",
+                "mean_delay",
+            }
+            assert entry["false_alarm_rate"] == 0.0
+    assert 0.0 <= written["ekf_chi2"]["false_alarm_rate"] <= 1.0 and "wall_seconds" in written
+    assert summary["automatic_bound_check"]["same_detection_flags"]
+    for entry in written["containment_stress"].values():
+        assert entry["containment_rate"] == 1.0 and entry["steps_outside"] == 0
+        assert entry["unflagged_not_positive_definite"] == 0
+    for name in (
+        "fig1_smf_bounds.png",
+        "fig2_ekf_bounds.png",
+        "fig3_remainder_bound.png",
+        "tables.md",
+    ):
+        assert (tmp_path / "smf-fdi" / name).exists()
+
+    # the programs the study ran, at the shapes it ran them: made once per process, so their
+    # compiled text comes without compiling them again
+    def keys(runs):
+        return jax.random.split(jax.random.key(0), runs)
+
+    programs = [
+        (smf_fdi.monte_carlo_function(closed_form_bound=True), keys(QUICK_RUNS)),
+        (smf_fdi.automatic_bound_function(), keys(QUICK_RUNS)),
+        *[
+            (smf_fdi.containment_stress_function(scale), keys(quick_runs))
+            for scale, (_, quick_runs) in smf_fdi.STRESS_RUNS.items()
+        ],
+    ]
+    texts = []
+    compiles = programs_compiled(
+        lambda: texts.extend(p.lower(k).compile().as_text() for p, k in programs)
+    )
+    assert compiles == 0 and len(texts) == len(programs)
+    assert_no_lapack_and_no_ynnpack(texts)
+
+
+def test_the_monte_carlo_with_the_automatic_bound_calls_no_lapack_and_no_ynnpack():
+    """The Monte Carlo with the interval remainder bound (the study runs the closed form)."""
+    study = smf_fdi.monte_carlo_function(closed_form_bound=False)
+    keys = jax.random.split(jax.random.key(0), QUICK_RUNS)
+    assert_no_lapack_and_no_ynnpack([study.lower(keys).compile().as_text()])
 
 
 @pytest.mark.slow

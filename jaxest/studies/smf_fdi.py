@@ -24,6 +24,7 @@ study uses ``filter_bank(2)``.
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 from typing import NamedTuple
@@ -362,9 +363,14 @@ def shard_runs(keys):
     return jax.device_put(keys, NamedSharding(mesh, PartitionSpec(RUNS_AXIS)))
 
 
+@functools.cache
 def monte_carlo_function(closed_form_bound: bool = False):
     """A jitted ``keys -> (inconsistent, contains, unbounded, ekf_alarms)``, each shaped
-    (runs, scenarios, filters or rules, steps): the whole Monte Carlo under one vmap."""
+    (runs, scenarios, filters or rules, steps): the whole Monte Carlo under one vmap.
+
+    Made once per process and argument, as are the study's other programs
+    (:func:`containment_stress_function`, :func:`automatic_bound_function`): a later call, or a
+    check of the compiled program (``.lower(keys).compile()``), reuses what the study compiled."""
     biases = scenario_biases()
     return batched_over_runs(lambda key: _one_run(key, biases, closed_form_bound))
 
@@ -385,6 +391,7 @@ def single_filter_function(closed_form_bound: bool = False):
 STRESS_RUNS = {1.0: (10_000, 200), 5.0: (1_000, 50)}
 
 
+@functools.cache
 def containment_stress_function(noise_scale: float):
     """A jitted ``keys -> (outside, unflagged_not_pd, unbounded)``, each (runs, filters, T), over
     fault-free runs with the noise and its bounds times ``noise_scale`` (closed-form remainder):
@@ -491,6 +498,7 @@ def _seed_spread(summaries: list[dict], seeds: list[int]) -> dict:
     return spread
 
 
+@functools.cache
 def automatic_bound_function():
     """A jitted ``keys -> (flags, relative_difference, example)``: the detection SMF with the
     automatic interval remainder bound over every scenario (flags (runs, S, T), to compare with
