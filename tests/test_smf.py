@@ -1,5 +1,6 @@
 """The nonlinear ellipsoidal SMF and fault detection/isolation: agreement with an independent NumPy
-loop, the containment guarantee, alarms, the unbounded-set behaviour, transforms, the study."""
+loop, the containment guarantee, alarms, the unbounded-set behaviour, transforms (the quick study
+and its compiled programs: test_smf_fdi_batch.py)."""
 
 import functools
 
