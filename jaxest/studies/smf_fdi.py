@@ -363,14 +363,19 @@ def shard_runs(keys):
     return jax.device_put(keys, NamedSharding(mesh, PartitionSpec(RUNS_AXIS)))
 
 
-@functools.cache
 def monte_carlo_function(closed_form_bound: bool = False):
     """A jitted ``keys -> (inconsistent, contains, unbounded, ekf_alarms)``, each shaped
     (runs, scenarios, filters or rules, steps): the whole Monte Carlo under one vmap.
 
     Made once per process and argument, as are the study's other programs
     (:func:`containment_stress_function`, :func:`automatic_bound_function`): a later call, or a
-    check of the compiled program (``.lower(keys).compile()``), reuses what the study compiled."""
+    check of the compiled program (``.lower(keys).compile()``), reuses what the study compiled,
+    whether the argument is given by position or by name."""
+    return _monte_carlo_function(bool(closed_form_bound))
+
+
+@functools.cache
+def _monte_carlo_function(closed_form_bound: bool):
     biases = scenario_biases()
     return batched_over_runs(lambda key: _one_run(key, biases, closed_form_bound))
 
@@ -391,12 +396,17 @@ def single_filter_function(closed_form_bound: bool = False):
 STRESS_RUNS = {1.0: (10_000, 200), 5.0: (1_000, 50)}
 
 
-@functools.cache
 def containment_stress_function(noise_scale: float):
     """A jitted ``keys -> (outside, unflagged_not_pd, unbounded)``, each (runs, filters, T), over
     fault-free runs with the noise and its bounds times ``noise_scale`` (closed-form remainder):
     whether the truth left a reported set, whether a set neither positive definite nor flagged
-    unbounded was reported, and the UNBOUNDED flags."""
+    unbounded was reported, and the UNBOUNDED flags. Made once per process and scale (1 and
+    1.0 alike)."""
+    return _containment_stress_function(float(noise_scale))
+
+
+@functools.cache
+def _containment_stress_function(noise_scale: float):
     model = duffing.model(closed_form_bound=True, noise_scale=noise_scale)
     prior = SetMembershipFilter().predict(model, duffing.prior())
 
