@@ -11,6 +11,9 @@ it for a path to test and roots the run elsewhere), then summarise:
     PYTHONPATH=benchmarks python -m pytest -n 2 -p suite_profile --suite-profile=DIR
     python benchmarks/suite_profile.py DIR [--top 15] [--json out.json]
 
+The summary splits the suite by the ``slow`` marker too (:data:`MARKER`): what ``make test-fast``
+runs and what only ``make test`` adds.
+
 A test's time counts from its setup to its teardown, so a module-scoped fixture's cost lands on
 the first test that uses it. XLA programs that compile in under :data:`SMALL_PROGRAM_S` are
 counted apart: they are mostly single operations run outside ``jit`` (one program per operation,
@@ -36,6 +39,8 @@ PHASES = {
 }
 #: XLA programs compiled faster than this (seconds) are counted as small
 SMALL_PROGRAM_S = 0.05
+#: the marker of the tests ``make test-fast`` leaves out (pyproject.toml)
+MARKER = "slow"
 
 
 class _Recorder:
@@ -62,9 +67,10 @@ class _Recorder:
         self.seconds.clear()
         self.counts.clear()
 
-    def end(self, test_id: str) -> None:
+    def end(self, test_id: str, markers: list[str]) -> None:
         record = {
             "test": test_id,
+            "markers": markers,
             "wall": time.perf_counter() - self.start,
             "seconds": dict(self.seconds),
             "counts": dict(self.counts),
@@ -115,7 +121,7 @@ def pytest_runtest_protocol(item, nextitem):
         _recorder.begin()
     yield
     if _recorder is not None:
-        _recorder.end(item.nodeid)
+        _recorder.end(item.nodeid, sorted({marker.name for marker in item.iter_markers()}))
 
 
 def read_records(directory: Path) -> list[dict]:
@@ -152,8 +158,9 @@ def _split(records: list[dict]) -> dict:
 
 
 def summarise(records: list[dict], top: int) -> dict:
-    """The whole suite's split (:func:`_split`), and the same for the ``top`` slowest test files
-    and tests; ``suite_xla_flags``: the ``XLA_FLAGS`` the suite ran with (``"xla_flags"``,
+    """The whole suite's split (:func:`_split`), and the same for the tests marked
+    :data:`MARKER` and the others, and for the ``top`` slowest test files and tests;
+    ``suite_xla_flags``: the ``XLA_FLAGS`` the suite ran with (``"xla_flags"``,
     added by :func:`~jaxest.report.emit_json`, are the summarising process's)."""
     by_file = collections.defaultdict(list)
     for record in records:
@@ -163,6 +170,10 @@ def summarise(records: list[dict], top: int) -> dict:
     return {
         "suite_xla_flags": sorted({r["xla_flags"] for r in records}),
         "suite": _split(records),
+        "by_marker": {
+            MARKER: _split([r for r in records if MARKER in r["markers"]]),
+            f"not {MARKER}": _split([r for r in records if MARKER not in r["markers"]]),
+        },
         "files": sorted(files, key=lambda f: -f["wall_s"])[:top],
         "tests": [{"test": r["test"], **_split([r])} for r in slowest],
     }

@@ -19,9 +19,9 @@ def test_a_jitted_program_and_an_operation_outside_jit_are_recorded_and_summaris
         # a program no other test compiles (its shape), and one operation run op by op
         jax.block_until_ready(jax.jit(lambda x: jnp.cumsum(jnp.sin(x)))(jnp.ones(37)))
         jax.block_until_ready(jnp.ones(41) * 3.0)
-        recorder.end("tests/test_a.py::test_one")
+        recorder.end("tests/test_a.py::test_one", [])
         recorder.begin()  # a second test that compiles nothing
-        recorder.end("tests/test_b.py::test_two")
+        recorder.end("tests/test_b.py::test_two", ["parametrize", "slow"])
     finally:
         jax.monitoring.unregister_event_duration_listener(recorder)
     records = suite_profile.read_records(tmp_path)
@@ -41,6 +41,10 @@ def test_a_jitted_program_and_an_operation_outside_jit_are_recorded_and_summaris
     assert suite["other_s"] == pytest.approx(suite["wall_s"] - phases)
     assert 0 < phases <= suite["wall_s"]
     assert [f["file"] for f in summary["files"]] == ["tests/test_a.py"]  # the slower, top=1
+    split = summary["by_marker"]
+    assert split["slow"]["tests"] == 1 and split["slow"]["programs_compiled"] == 0
+    assert split["not slow"]["programs_compiled"] == suite["programs_compiled"]
+    assert split["slow"]["wall_s"] + split["not slow"]["wall_s"] == pytest.approx(suite["wall_s"])
     assert summary["tests"][0]["test"] == "tests/test_a.py::test_one"
 
 
@@ -53,7 +57,9 @@ def test_the_plugin_writes_a_record_per_test_where_it_runs(pytester, tmp_path):
     pytester.makepyfile(
         test_two="""
         import jax, jax.numpy as jnp
+        import pytest
 
+        @pytest.mark.slow
         def test_compiles():
             jax.block_until_ready(jax.jit(lambda x: jnp.cos(x) * 2)(jnp.ones(43)))
 
@@ -70,4 +76,5 @@ def test_the_plugin_writes_a_record_per_test_where_it_runs(pytester, tmp_path):
         "test_two.py::test_compiles_nothing",
     ]
     assert records[0]["counts"]["compile"] >= 1 and records[1]["counts"] == {}
+    assert [r["markers"] for r in records] == [["slow"], []]
     assert suite_profile._recorder is None  # the listener goes with the session
