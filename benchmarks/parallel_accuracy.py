@@ -14,7 +14,9 @@ parallel filter in square-root and standard form against the float64 sequential
   which the flag compares with sqrt(eps), and its ratio to the combined log-likelihood's error;
   and that of eq (5') over the whole run, which the flag compares with sqrt(eps) too;
 - the errors of the filtered means and covariances (relative to the largest entry of the float64
-  array).
+  array), and the means' largest error in posterior standard deviations (those of the float64
+  filter, sqrt of its P(k|k)'s diagonal): whether an error is large for what the filter claims
+  to know.
 
 At ``--detail`` s (default 1e-4) the float32 sequential ``KalmanFilter`` and ``SquareRootKF``
 are reported too.
@@ -80,11 +82,18 @@ def relative_loglik_error(loglik, reference) -> float:
     return abs(float(loglik) / float(reference.loglik) - 1)
 
 
+def in_standard_deviations(mean, reference) -> float:
+    """max over steps and states of |mean - reference.mean| / sqrt(diag reference.cov)."""
+    sd = np.sqrt(np.diagonal(np.asarray(reference.cov), axis1=-2, axis2=-1))
+    return float(np.max(np.abs(np.asarray(mean, np.float64) - np.asarray(reference.mean)) / sd))
+
+
 def errors(result, reference) -> dict:
     return {
         "loglik": float(result.loglik),
         "loglik_rel_err": relative_loglik_error(result.loglik, reference),
         "mean_rel_err": relative(result.mean, reference.mean),
+        "mean_err_sd": in_standard_deviations(result.mean, reference),
         "cov_rel_err": relative(result.cov, reference.cov),
         "flagged_steps": int(np.sum(np.asarray(result.status) != 0)),
         "status": je.ParallelStatus.describe(result.any_status),
