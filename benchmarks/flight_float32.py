@@ -30,21 +30,22 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from parallel_accuracy import in_standard_deviations  # noqa: E402
 
 import jaxest as je  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
 from jaxest.studies import svd_ekf as study  # noqa: E402
-from jaxest.systems import flight, flight_data  # noqa: E402
+from jaxest.systems import flight_data  # noqa: E402
 
 FILTERS = {"SVDEKF": je.SVDEKF, "ImprovedSVDKF": je.ImprovedSVDKF, "EKF": je.EKF}
 
 
 def records(data_dir) -> dict[str, flight_data.FlightData]:
     """The four records of the svd-ekf study."""
-    found = {"hfb320": flight_data.load_hfb320(data_dir)}
-    for maneuver in ("elevator", "aileron", "rudder"):
-        found[maneuver] = flight_data.load_attas(maneuver, data_dir)
-    return found
+    attas = {
+        maneuver: flight_data.load_attas(maneuver, data_dir) for maneuver in flight_data.ATTAS_FILES
+    }
+    return {"hfb320": flight_data.load_hfb320(data_dir), **attas}
 
 
 def cast(tree, dtype):
@@ -61,24 +62,24 @@ def scaled(model: je.NonlinearGaussian, prior: je.Gaussian, s):
 
 
 def float32_errors(Filter, data: flight_data.FlightData) -> dict:
-    model = flight.flight_model(
-        data.dt, jnp.asarray(study.sim.INPUT_STD), jnp.asarray(study.REAL_OUTPUT_STD)
+    """The float32 runs of ``Filter`` on ``data``, as given and scaled, against its float64 run
+    (the svd-ekf study's ``reconstruct``)."""
+    reference, model, inputs = study.reconstruct(
+        data, study.sim.INPUT_STD, study.REAL_OUTPUT_STD, Filter()
     )
-    inputs = flight.interval_inputs(jnp.asarray(data.inputs))
-    prior, ys = study.real_prior(data), jnp.asarray(data.outputs)
-    reference = je.run(Filter(), model, ys, inputs=inputs, prior=prior)
-    sd = np.sqrt(np.diagonal(np.asarray(reference.cov), axis1=-2, axis2=-1))
     single = lambda tree: cast(tree, jnp.float32)
+    prior = study.real_prior(data)
     s = np.sqrt(np.diag(np.asarray(prior.cov)))
+    model, prior = single(model), single(prior)
+    # (model, prior, what maps the run's means back to the state's units), scaled in float32
+    forms = {"as_given": (model, prior, 1.0), "scaled": (*scaled(model, prior, single(s)), s)}
     row = {}
-    for form in ("as_given", "scaled"):
-        m, p, back = model, prior, np.ones_like(s)
-        if form == "scaled":
-            (m, p), back = scaled(single(model), single(prior), jnp.asarray(s, jnp.float32)), s
-        result = je.run(Filter(), single(m), single(ys), inputs=single(inputs), prior=single(p))
-        error = np.abs(np.asarray(result.mean, np.float64) * back - np.asarray(reference.mean))
+    for form, (m, p, back) in forms.items():
+        result = je.run(Filter(), m, single(data.outputs), inputs=single(inputs), prior=p)
         row[form] = {
-            "mean_err_sd": float(np.max(error / sd)),
+            "mean_err_sd": in_standard_deviations(
+                np.asarray(result.mean, np.float64) * back, reference
+            ),
             "loglik_diff": float(result.loglik) - float(reference.loglik),
             "status": type(result).flags.describe(result.any_status),
         }
