@@ -9,7 +9,9 @@ manoeuvres) is filtered with the study's prior (``real_prior``) and output noise
 simulator's input noise, by the SVD-EKF, the improved SVD filter and the EKF, in float64 and in
 float32. Each float32 run is measured against its filter's float64 run: the largest error of the
 filtered means over steps and states in the float64 posterior standard deviations (sqrt of the
-diagonal of P(k|k)), the log-likelihood's difference in nats, and the status.
+diagonal of P(k|k)), the log-likelihood's difference in nats, and the status; and the largest
+condition number of the float32 run's P(k|k) over its steps (``cond_max``, its eigenvalues taken
+in float64), to set beside 1 / eps(float32) = 8.4e6.
 
 ``scaled`` runs the same filter on the same model with the state x = s * x~, s the prior's
 standard deviations: f~(x~, u) = f(s x~, u) / s, G~ = G(s x~, u) / s (row-wise),
@@ -61,6 +63,12 @@ def scaled(model: je.NonlinearGaussian, prior: je.Gaussian, s):
     return scaled_model, je.Gaussian(prior.mean / s, prior.cov / jnp.outer(s, s))
 
 
+def largest_condition_number(covs) -> float:
+    """max over steps of lambda_max / lambda_min of the covariances ``covs`` (T, n, n), in float64."""
+    eigenvalues = np.linalg.eigvalsh(np.asarray(covs, np.float64))
+    return float(np.max(eigenvalues[:, -1] / eigenvalues[:, 0]))
+
+
 def float32_errors(Filter, data: flight_data.FlightData) -> dict:
     """The float32 runs of ``Filter`` on ``data``, as given and scaled, against its float64 run
     (the svd-ekf study's ``reconstruct``)."""
@@ -82,6 +90,7 @@ def float32_errors(Filter, data: flight_data.FlightData) -> dict:
             ),
             "loglik_diff": float(result.loglik) - float(reference.loglik),
             "status": type(result).flags.describe(result.any_status),
+            "cond_max": largest_condition_number(result.cov),
         }
     return row
 
