@@ -64,9 +64,12 @@ def scaled(model: je.NonlinearGaussian, prior: je.Gaussian, s):
 
 
 def largest_condition_number(covs) -> float:
-    """max over steps of lambda_max / lambda_min of the covariances ``covs`` (T, n, n), in float64."""
+    """max over steps of lambda_max / lambda_min of the covariances ``covs`` (T, n, n), in float64;
+    infinite where one is singular or indefinite (lambda_min <= 0)."""
     eigenvalues = np.linalg.eigvalsh(np.asarray(covs, np.float64))
-    return float(np.max(eigenvalues[:, -1] / eigenvalues[:, 0]))
+    smallest, largest = eigenvalues[:, 0], eigenvalues[:, -1]
+    ratios = np.where(smallest > 0, largest / np.where(smallest > 0, smallest, 1.0), np.inf)
+    return float(np.max(ratios))
 
 
 def float32_errors(Filter, data: flight_data.FlightData) -> dict:

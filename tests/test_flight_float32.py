@@ -26,6 +26,8 @@ def test_largest_condition_number_is_the_worst_steps_eigenvalue_ratio():
         ]
     )
     assert flight_float32.largest_condition_number(covs) == pytest.approx(3e3, rel=1e-12)
+    indefinite = jnp.concatenate([covs, jnp.diag(jnp.array([1.0, -1e-9]))[None]])
+    assert flight_float32.largest_condition_number(indefinite) == np.inf
 
 
 @pytest.mark.parametrize("Filter", [je.SVDEKF, je.ImprovedSVDKF, je.EKF])
