@@ -36,6 +36,7 @@ from parallel_accuracy import in_standard_deviations  # noqa: E402
 
 import jaxest as je  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
+from jaxest.setmembership.ellipsoid import condition_number  # noqa: E402
 from jaxest.studies import svd_ekf as study  # noqa: E402
 from jaxest.systems import flight_data  # noqa: E402
 
@@ -64,12 +65,9 @@ def scaled(model: je.NonlinearGaussian, prior: je.Gaussian, s):
 
 
 def largest_condition_number(covs) -> float:
-    """max over steps of lambda_max / lambda_min of the covariances ``covs`` (T, n, n), in float64;
-    infinite where one is singular or indefinite (lambda_min <= 0)."""
-    eigenvalues = np.linalg.eigvalsh(np.asarray(covs, np.float64))
-    smallest, largest = eigenvalues[:, 0], eigenvalues[:, -1]
-    ratios = np.where(smallest > 0, largest / np.where(smallest > 0, smallest, 1.0), np.inf)
-    return float(np.max(ratios))
+    """max over steps of :func:`~jaxest.setmembership.ellipsoid.condition_number` of the
+    covariances ``covs`` (T, n, n), in float64: infinite where one is singular or indefinite."""
+    return float(jnp.max(jax.vmap(condition_number)(jnp.asarray(covs, jnp.float64))))
 
 
 def float32_errors(Filter, data: flight_data.FlightData) -> dict:
@@ -88,9 +86,7 @@ def float32_errors(Filter, data: flight_data.FlightData) -> dict:
     for form, (m, p, back) in forms.items():
         result = je.run(Filter(), m, single(data.outputs), inputs=single(inputs), prior=p)
         row[form] = {
-            "mean_err_sd": in_standard_deviations(
-                np.asarray(result.mean, np.float64) * back, reference
-            ),
+            "mean_err_sd": in_standard_deviations(result.mean * back, reference),
             "loglik_diff": float(result.loglik) - float(reference.loglik),
             "status": type(result).flags.describe(result.any_status),
             "cond_max": largest_condition_number(result.cov),

@@ -2,8 +2,6 @@
 float32"): the change of state units it runs the filters in, and the condition number it reports.
 The script itself filters the real records (about 90 s) and is run by hand."""
 
-import sys
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -12,9 +10,7 @@ import pytest
 import jaxest as je
 from tests import benchmark_scripts
 
-sys.path.insert(0, str(benchmark_scripts.BENCHMARKS))  # as run: it imports its siblings by name
 flight_float32 = benchmark_scripts.load("flight_float32")
-sys.path.remove(str(benchmark_scripts.BENCHMARKS))
 
 
 def test_largest_condition_number_is_the_worst_steps_eigenvalue_ratio():
