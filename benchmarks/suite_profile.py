@@ -18,6 +18,11 @@ A test's time counts from its setup to its teardown, so a module-scoped fixture'
 the first test that uses it. XLA programs that compile in under :data:`SMALL_PROGRAM_S` are
 counted apart: they are mostly single operations run outside ``jit`` (one program per operation,
 shape and dtype), where the rest are the jitted estimators the tests exercise.
+
+Each record also splits the test's phases by program name (:func:`program_name`: ``_run`` for
+``jax.jit`` of jaxest's driver, ``add`` for an addition outside ``jit``), and the summary lists
+the costliest names over the suite: which functions' programs the time goes to, and in how many
+tests.
 """
 
 from __future__ import annotations
@@ -43,14 +48,25 @@ SMALL_PROGRAM_S = 0.05
 MARKER = "slow"
 
 
+def program_name(fun_name: str) -> str:
+    """The name of the function a program was made from, the same for its three phases: JAX
+    names the tracing by the function (``loss``) and the lowering and compiling by the program
+    (``jit(loss)``)."""
+    if fun_name.startswith("jit(") and fun_name.endswith(")"):
+        return fun_name[len("jit(") : -1]
+    return fun_name
+
+
 class _Recorder:
-    """The current test's seconds and counts per phase, fed by ``jax.monitoring``."""
+    """The current test's seconds and counts per phase, in all and per program name, fed by
+    ``jax.monitoring``."""
 
     def __init__(self, path: Path):
         self.path = path
         self.start = time.perf_counter()
         self.seconds = collections.Counter()
         self.counts = collections.Counter()
+        self.programs = collections.defaultdict(collections.Counter)
 
     def __call__(self, event: str, seconds: float, **kwargs) -> None:
         phase = PHASES.get(event)
@@ -61,11 +77,16 @@ class _Recorder:
         if phase == "compile" and seconds < SMALL_PROGRAM_S:
             self.seconds["compile_small"] += seconds
             self.counts["compile_small"] += 1
+        program = self.programs[program_name(kwargs.get("fun_name", "?"))]
+        program[phase] += seconds
+        if phase == "compile":
+            program["compiled"] += 1
 
     def begin(self) -> None:
         self.start = time.perf_counter()
         self.seconds.clear()
         self.counts.clear()
+        self.programs.clear()
 
     def end(self, test_id: str, markers: list[str]) -> None:
         record = {
@@ -74,6 +95,7 @@ class _Recorder:
             "wall": time.perf_counter() - self.start,
             "seconds": dict(self.seconds),
             "counts": dict(self.counts),
+            "programs": {name: dict(split) for name, split in self.programs.items()},
             "xla_flags": os.environ.get("XLA_FLAGS", ""),
         }
         with self.path.open("a") as stream:
@@ -157,11 +179,34 @@ def _split(records: list[dict]) -> dict:
     }
 
 
+def _by_program(records: list[dict]) -> list[dict]:
+    """Each program name's seconds per phase summed over the tests, the programs compiled under
+    it and the tests that made them, the costliest first."""
+    seconds = collections.defaultdict(collections.Counter)
+    tests = collections.Counter()
+    for record in records:
+        for name, split in record["programs"].items():
+            seconds[name].update(split)
+            tests[name] += 1
+    rows = [
+        {
+            "program": name,
+            "tests": tests[name],
+            "compiled": split["compiled"],
+            **{f"{phase}_s": split[phase] for phase in ("trace", "lower", "compile")},
+            "total_s": split["trace"] + split["lower"] + split["compile"],
+        }
+        for name, split in seconds.items()
+    ]
+    return sorted(rows, key=lambda row: -row["total_s"])
+
+
 def summarise(records: list[dict], top: int) -> dict:
     """The whole suite's split (:func:`_split`), and the same for the tests marked
-    :data:`MARKER` and the others, and for the ``top`` slowest test files and tests;
-    ``suite_xla_flags``: the ``XLA_FLAGS`` the suite ran with (``"xla_flags"``,
-    added by :func:`~jaxest.report.emit_json`, are the summarising process's)."""
+    :data:`MARKER` and the others, and for the ``top`` slowest test files and tests; the
+    ``top`` costliest program names (:func:`_by_program`); ``suite_xla_flags``: the
+    ``XLA_FLAGS`` the suite ran with (``"xla_flags"``, added by
+    :func:`~jaxest.report.emit_json`, are the summarising process's)."""
     by_file = collections.defaultdict(list)
     for record in records:
         by_file[record["test"].split("::")[0]].append(record)
@@ -176,6 +221,7 @@ def summarise(records: list[dict], top: int) -> dict:
         },
         "files": sorted(files, key=lambda f: -f["wall_s"])[:top],
         "tests": [{"test": r["test"], **_split([r])} for r in slowest],
+        "programs": _by_program(records)[:top],
     }
 
 
@@ -184,7 +230,9 @@ def main(argv=None):
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("directory", type=Path, help="the --suite-profile directory of a run")
-    parser.add_argument("--top", type=int, default=15, help="files and tests listed (default 15)")
+    parser.add_argument(
+        "--top", type=int, default=15, help="files, tests and program names listed (default 15)"
+    )
     parser.add_argument("--json", help="write the summary here as well as to stdout")
     args = parser.parse_args(argv)
     from jaxest.report import emit_json

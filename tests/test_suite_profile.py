@@ -12,12 +12,15 @@ suite_profile = benchmark_scripts.load("suite_profile")
 
 
 def test_a_jitted_program_and_an_operation_outside_jit_are_recorded_and_summarised(tmp_path):
+    def cumulative_sine(x):
+        return jnp.cumsum(jnp.sin(x))
+
     recorder = suite_profile._Recorder(tmp_path / "main.jsonl")
     jax.monitoring.register_event_duration_secs_listener(recorder)
     try:
         recorder.begin()
         # a program no other test compiles (its shape), and one operation run op by op
-        jax.block_until_ready(jax.jit(lambda x: jnp.cumsum(jnp.sin(x)))(jnp.ones(37)))
+        jax.block_until_ready(jax.jit(cumulative_sine)(jnp.ones(37)))
         jax.block_until_ready(jnp.ones(41) * 3.0)
         recorder.end("tests/test_a.py::test_one", [])
         recorder.begin()  # a second test that compiles nothing
@@ -34,6 +37,14 @@ def test_a_jitted_program_and_an_operation_outside_jit_are_recorded_and_summaris
     assert first["counts"]["compile_small"] >= 1  # the multiplication's program
     assert first["seconds"]["compile"] >= first["seconds"]["compile_small"] > 0
     assert second["counts"] == {} and second["seconds"] == {}
+    # the jitted function's three phases under its own name; the operation under another
+    programs = first["programs"]
+    assert programs["cumulative_sine"]["compiled"] == 1
+    assert all(programs["cumulative_sine"][phase] > 0 for phase in ("trace", "lower", "compile"))
+    assert (
+        sum(split.get("compiled", 0) for split in programs.values()) == first["counts"]["compile"]
+    )
+    assert second["programs"] == {}
     summary = suite_profile.summarise(records, top=1)
     suite = summary["suite"]
     assert suite["tests"] == 2 and suite["programs_compiled"] == first["counts"]["compile"]
@@ -46,6 +57,23 @@ def test_a_jitted_program_and_an_operation_outside_jit_are_recorded_and_summaris
     assert split["not slow"]["programs_compiled"] == suite["programs_compiled"]
     assert split["slow"]["wall_s"] + split["not slow"]["wall_s"] == pytest.approx(suite["wall_s"])
     assert summary["tests"][0]["test"] == "tests/test_a.py::test_one"
+    (costliest,) = summary["programs"]  # top=1
+    assert costliest["tests"] == 1
+    assert costliest["total_s"] == pytest.approx(
+        costliest["trace_s"] + costliest["lower_s"] + costliest["compile_s"]
+    )
+    every = suite_profile.summarise(records, top=100)["programs"]
+    assert [row["total_s"] for row in every] == sorted(
+        (row["total_s"] for row in every), reverse=True
+    )
+    assert sum(row["compiled"] for row in every) == suite["programs_compiled"]
+    assert "cumulative_sine" in [row["program"] for row in every]
+
+
+def test_a_program_is_named_by_its_function_in_every_phase():
+    assert suite_profile.program_name("jit(loss)") == "loss"
+    assert suite_profile.program_name("loss") == "loss"
+    assert suite_profile.program_name("jit(jit(f))") == "jit(f)"
 
 
 def test_an_empty_directory_is_an_error_naming_it(tmp_path):
