@@ -1,8 +1,10 @@
 """Ill-conditioned measurement update (Dyer-McReynolds / Grewal-Andrews, docs/papers/svd_ekf.md).
 
 P0 = I3, H = [[1, 1, 1], [1, 1, 1 + d]], R = d^2 I2, one update; relative error (Frobenius) of
-P+ against the closed form, for every filter ("kf" = conventional covariance KF, "svd_ekf" = the
-paper's SVD filter, ...) in float64 and float32 and d = 1e-1 ... 1e-16 (null where not finite).
+P+ against the closed form, P+'s variance along the direction the two measurements pin down over
+the exact one (``smallest_variance_ratio``) and the update's status, for every filter ("kf" =
+conventional covariance KF, "svd_ekf" = the paper's SVD filter, ...) in float64 and float32 and
+d = 1e-1 ... 1e-16 (null where not finite).
 
     python benchmarks/robustness.py --json out.json
 """

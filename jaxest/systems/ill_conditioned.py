@@ -2,6 +2,10 @@
 
 P0 = I3, H = [[1, 1, 1], [1, 1, 1 + d]], R = d^2 I2, one update. As d -> 0 the conventional
 Kalman filter's P+ = P - K S K^T loses all accuracy near d = 1e-8 in float64.
+
+Two measures of a filter's P+: its relative (Frobenius) error, which the largest entries
+dominate, and its variance along the direction the two measurements pin down, where P+'s
+smallest eigenvalue, of order d^2, lies (:func:`smallest_variance_ratio`).
 """
 
 from __future__ import annotations
@@ -11,7 +15,15 @@ import numpy as np
 
 import jaxest as je
 
-__all__ = ["exact_posterior", "problem", "posterior_error"]
+__all__ = [
+    "exact_posterior",
+    "posterior",
+    "posterior_error",
+    "problem",
+    "relative_error",
+    "smallest_variance",
+    "smallest_variance_ratio",
+]
 
 
 def exact_posterior(d: float) -> np.ndarray:
@@ -35,9 +47,49 @@ def problem(d: float, dtype=jnp.float64):
     )
 
 
-def posterior_error(Filter, d: float, dtype=jnp.float64) -> float:
-    """Relative (Frobenius) error of the filter's P+ against the closed form (NaN if not finite)."""
+def smallest_variance(d: float, dtype=jnp.float64) -> tuple[float, np.ndarray]:
+    """The smallest eigenvalue of P+ and its unit eigenvector, for the test as ``dtype`` holds
+    it (1 + d rounded; float32 holds 1 + 1e-8 as 1). With P0 = I, P+^-1 = I + H^T R^-1 H, whose
+    largest eigenvalue, of order 6 / d^2 and far from the others (1 and about 4/3), float64
+    resolves to its last digits from H and R however small d is; P+'s smallest eigenvalue is its
+    inverse, with the same eigenvector."""
+    model, _, _ = problem(d, dtype)
+    H, R = (np.asarray(a, np.float64) for a in (model.H, model.R))
+    eigenvalues, vectors = np.linalg.eigh(np.eye(3) + H.T @ np.linalg.solve(R, H))
+    return float(1.0 / eigenvalues[-1]), vectors[:, -1]
+
+
+def posterior(Filter, d: float, dtype=jnp.float64):
+    """The filter's result of the test's one update in ``dtype``, with P+, the factor of P+ it
+    keeps (if any) and its status saved."""
     model, prior, ys = problem(d, dtype)
-    P = np.asarray(je.run(Filter(), model, ys, prior=prior).cov[0], np.float64)
+    return je.run(Filter(), model, ys, prior=prior, save=je.SaveAt(("cov", "factor", "status")))
+
+
+def relative_error(result, d: float) -> float:
+    """Relative (Frobenius) error of a :func:`posterior`'s P+ against the closed form (NaN if
+    not finite)."""
+    P = np.asarray(result.cov[0], np.float64)
     exact = exact_posterior(d)
     return float(np.linalg.norm(P - exact) / np.linalg.norm(exact))
+
+
+def posterior_error(Filter, d: float, dtype=jnp.float64) -> float:
+    """:func:`relative_error` of the filter's P+."""
+    return relative_error(posterior(Filter, d, dtype), d)
+
+
+def smallest_variance_ratio(result, d: float) -> float:
+    """v^T P+ v of a :func:`posterior` over the exact smallest eigenvalue, v its eigenvector
+    (:func:`smallest_variance`, for the test as the result's dtype holds it): 1 where the filter
+    resolves the direction the measurements pin down. Taken in float64 from the square root the filter keeps (SVD or Cholesky factor), which
+    resolves variances far below eps ||P+||; from P+ itself for the filters that keep P."""
+    exact, v = smallest_variance(d, result.cov.dtype)
+    factor = result.factor
+    if isinstance(factor, je.SVDFactor):
+        rows = np.asarray(factor.D[0], np.float64)[:, None] * np.asarray(factor.U[0], np.float64).T
+    elif isinstance(factor, je.CholeskyFactor):
+        rows = np.asarray(factor.chol[0], np.float64).T
+    else:
+        return float(v @ np.asarray(result.cov[0], np.float64) @ v / exact)
+    return float(np.sum((rows @ v) ** 2) / exact)
