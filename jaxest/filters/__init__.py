@@ -48,4 +48,6 @@ from jaxest.filters.svd_ekf import (
     SVDEKF as SVDEKF,
     AbstractSVDFilter as AbstractSVDFilter,
     ImprovedSVDKF as ImprovedSVDKF,
+    ImprovedSVDResult as ImprovedSVDResult,
+    ImprovedSVDStatus as ImprovedSVDStatus,
 )

@@ -11,7 +11,9 @@
   information form loses its digits (docs/robustness.md).
 - :class:`ImprovedSVDKF`: Kulikova & Tsyganova's covariance-form SVD filter (docs/papers/svd_ekf.md):
   no inverse of D or R, PSD Q allowed, Joseph-form covariance and the likelihood from the
-  innovation's own SVD.
+  innovation's own SVD. The Joseph form carries the gain's rounding into P+ at second order,
+  and where that can reach the posterior's standard deviation in some direction the step raises
+  ``GAIN_ROUNDING`` (:func:`gain_rounding`).
 
 Derivatives. The SVD's derivative is NaN when singular values repeat (P0 = c I, isotropic Q),
 though every output depends on P only through U D^2 U^T. So each step is a custom JVP whose
@@ -27,7 +29,9 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float, Int
 
+from jaxest._status import Status, status_where
 from jaxest.filters.base import AbstractGaussianFilter, FilterResult, StepOutput, SVDFactor
 from jaxest.filters.common import LOG_2PI, covariance_step, masked_measurement, step_status
 from jaxest.filters.kalman import (
@@ -47,6 +51,60 @@ from jaxest.linalg import (
     solve_triangular,
     symmetrize,
 )
+
+#: the Joseph form's rounding (:func:`gain_rounding`) is flagged from the size of the posterior's
+#: standard deviation in some direction on
+GAIN_ROUNDING_TOLERANCE = 1.0
+
+ImprovedSVDStatus = Status.extend(
+    "ImprovedSVDStatus",
+    GAIN_ROUNDING=(
+        4,
+        "the gain's rounding, carried into P(k|k) by the Joseph form, can reach the posterior's "
+        "standard deviation in some direction: the variance of the most precisely measured "
+        "direction, and the mean along it, are not resolved in this dtype (a measurement "
+        "combination far more precise than the prior). Use SquareRootKF, which keeps that "
+        "direction, or float64 (docs/robustness.md)",
+    ),
+)
+"""The improved SVD filter's status flags (:class:`ImprovedSVDKF`): the core's and GAIN_ROUNDING."""
+
+
+class ImprovedSVDResult(FilterResult):
+    """:class:`~jaxest.FilterResult` whose status bits are :data:`ImprovedSVDStatus`."""
+
+    flags: ClassVar = ImprovedSVDStatus
+
+
+def gain_rounding(K, Re, U_post, D_post) -> Float[Array, ""]:
+    """max_i eps || |u_i|^T |K| || max(Re)^1/2 / d_i over P+'s singular directions u_i (the
+    columns of U+, standard deviations d_i = D+_i): how far the gain's rounding can move P+
+    along each, in units of its standard deviation there. A diagnostic: no derivative flows
+    through it.
+
+    The Joseph form P+ = (I - K H) P (I - K H)^T + K R K^T is stationary at the optimal gain: a
+    gain K + dK gives P+ + dK S dK^T exactly, S = H P H^T + R = Q_Re diag(Re) Q_Re^T. With each
+    entry of K rounded, |dK| <= eps |K|, that term adds at most
+    (eps || |u|^T |K| || max(Re)^1/2)^2 to the variance along a unit vector u, and x+ moves
+    along u by about as much in units of e's scale. Harmless until it is comparable to the
+    variance there, which a measurement combination far more precise than the prior makes
+    tiny while K grows as its inverse square root. Taken along each direction rather than as
+    eps ||K|| against the smallest standard deviation, it does not count a gain's large
+    entries for states in large units (metres beside milliradians) against a small variance in
+    others. On the Dyer-McReynolds update (R = d^2 I) it was at most 0.29 (float32) and 0.60
+    (float64) where P+'s variance along its smallest direction was right to 1 %, and above 1
+    from where it was 5-7 % off (float32 d = 5e-4, float64 d = 2e-8) to where it was 10^24
+    times too large (docs/robustness.md)."""
+    K, Re, U_post, D_post = jax.lax.stop_gradient((K, Re, U_post, D_post))
+    eps = jnp.finfo(K.dtype).eps
+    along = jnp.sqrt(jnp.sum((jnp.abs(U_post).T @ jnp.abs(K)) ** 2, axis=1))
+    return eps * jnp.sqrt(jnp.max(Re)) * jnp.max(along / D_post)
+
+
+def gain_rounding_status(rounding) -> Int[Array, ""]:
+    """``GAIN_ROUNDING`` where :func:`gain_rounding` exceeds :data:`GAIN_ROUNDING_TOLERANCE`.
+    NaN sets no bit (``NONFINITE`` says it)."""
+    return status_where(rounding > GAIN_ROUNDING_TOLERANCE, ImprovedSVDStatus.GAIN_ROUNDING)
 
 
 def svd_time_update(U, D, F, noise_rows):
@@ -82,7 +140,8 @@ def paper_svd_step(model, x, U, D, y, u, k):
 
 
 def improved_svd_step(model, x, U, D, y, u, k):
-    """One step of Kulikova & Tsyganova's covariance-form SVD filter (docs/papers/svd_ekf.md)."""
+    """One step of Kulikova & Tsyganova's covariance-form SVD filter (docs/papers/svd_ekf.md).
+    Its last output is the :func:`gain_rounding` of the update."""
     y_pred, H, R = model.observation(x, u, k)
     meas = masked_measurement(y, y_pred, H, R)
     R_rows = sqrt_rows(meas.R)  # D_R^1/2 Q_R^T
@@ -102,8 +161,8 @@ def improved_svd_step(model, x, U, D, y, u, k):
     S = symmetrize((Q_Re * Re) @ Q_Re.T)
     x_next, F, G, Q = model.transition(x_post, u, k)
     U_next, D_next = svd_time_update(U_post, D_post, F, sqrt_rows(Q) @ G.T)
-    gap = jnp.zeros((), loglik.dtype)  # a covariance-form step: nothing to disagree with
-    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik, gap)
+    rounding = gain_rounding(K, Re, U_post, D_post)
+    return x_next, U_next, D_next, (x_post, U_post, D_post, meas.innovation, S, loglik, rounding)
 
 
 @eqx.filter_custom_jvp
@@ -116,11 +175,11 @@ def factored_step(model, x, U, D, y, u, k, *, primal):
 def _factored_step_jvp(primals, tangents, *, primal):
     model, x, U, D, y, u, k = primals
     t_model, t_x, t_U, t_D, t_y, t_u, _ = tangents
-    x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, gap) = factored_step(
+    x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, diagnostic) = factored_step(
         model, x, U, D, y, u, k, primal=primal
     )
     U_next, D_next, U_post, D_post = keep_factors(U_next, D_next, U_post, D_post)
-    out = x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, gap)
+    out = x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, diagnostic)
     zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     dP = factor_tangent_to_cov(U, D, zeros(t_U, U), zeros(t_D, D))
     ref = lambda model, x, P, y, u: covariance_step(model, x, P, y, u, k)
@@ -130,29 +189,34 @@ def _factored_step_jvp(primals, tangents, *, primal):
     dU_next, dD_next = cov_tangent_to_factor(U_next, D_next, symmetrize(dP_next))
     dx_post, dP_post, de, dS, dloglik = d_outputs
     dU_post, dD_post = cov_tangent_to_factor(U_post, D_post, symmetrize(dP_post))
-    d_outputs = (dx_post, dU_post, dD_post, de, dS, dloglik, None)  # the gap: a diagnostic
+    d_outputs = (dx_post, dU_post, dD_post, de, dS, dloglik, None)  # no derivative
     d_outputs = jax.tree.map(
-        zeros, d_outputs, (x_post, U_post, D_post, e, S, loglik, gap), is_leaf=lambda t: t is None
+        zeros,
+        d_outputs,
+        (x_post, U_post, D_post, e, S, loglik, diagnostic),
+        is_leaf=lambda t: t is None,
     )
     return out, (dx_next, dU_next, dD_next, d_outputs)
 
 
 class AbstractSVDFilter(AbstractGaussianFilter):
     """An SVD filter: P = U diag(D)^2 U^T propagated through its factors by the class-level
-    ``factored_step`` (one of :func:`paper_svd_step`, :func:`improved_svd_step`), differentiated
-    at the covariance level (module docstring). Saved with ``SaveAt(fields=(..., "factor"))``
-    it also returns the factors U, D of P(k|k) and P(k|k-1)."""
+    ``svd_step`` (one of :func:`paper_svd_step`, :func:`improved_svd_step`), differentiated
+    at the covariance level (module docstring); the step's last output, a diagnostic of its
+    update, gives its own status bit through the class-level ``diagnostic_status``. Saved with
+    ``SaveAt(fields=(..., "factor"))`` it also returns the factors U, D of P(k|k) and P(k|k-1)."""
 
     factor_type = SVDFactor
     svd_step: ClassVar[staticmethod]
+    diagnostic_status: ClassVar[staticmethod]
 
     def update_predict(self, model, x, factor: SVDFactor, k, y, u):
-        x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, gap) = factored_step(
+        x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, diagnostic) = factored_step(
             model, x, factor.U, factor.D, y, u, k, primal=self.svd_step
         )
         P_post = cov_from_factor(U_post, D_post)
         status = step_status(x_next, U_next, D_next, P_post, loglik, positive=jnp.all(D_next > 0))
-        status = status | gap_status(gap)
+        status = status | self.diagnostic_status(diagnostic)
         out = StepOutput(
             x, factor.cov, x_post, P_post, e, S, loglik, status,
             predicted_factor=factor, factor=SVDFactor(U_post, D_post),
@@ -168,9 +232,13 @@ class SVDEKF(AbstractSVDFilter):
 
     result_type: ClassVar[type[FilterResult]] = InformationFormResult
     svd_step: ClassVar[staticmethod] = staticmethod(paper_svd_step)
+    diagnostic_status: ClassVar[staticmethod] = staticmethod(gap_status)
 
 
 class ImprovedSVDKF(AbstractSVDFilter):
-    """Kulikova & Tsyganova's improved covariance-form SVD filter (docs/papers/svd_ekf.md)."""
+    """Kulikova & Tsyganova's improved covariance-form SVD filter (docs/papers/svd_ekf.md). Its
+    status bits are :data:`ImprovedSVDStatus`."""
 
+    result_type: ClassVar[type[FilterResult]] = ImprovedSVDResult
     svd_step: ClassVar[staticmethod] = staticmethod(improved_svd_step)
+    diagnostic_status: ClassVar[staticmethod] = staticmethod(gain_rounding_status)
