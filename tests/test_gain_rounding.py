@@ -1,5 +1,6 @@
 """The improved SVD filter on a measurement combination far more precise than its prior: P+ in
-that direction right, or flagged GAIN_ROUNDING, never wrong with status OK (docs/robustness.md)."""
+that direction right, or flagged GAIN_ROUNDING, never wrong with status OK, down to standard
+deviations near eps times the largest, which no factored filter resolves (docs/robustness.md)."""
 
 import jax
 import jax.numpy as jnp
