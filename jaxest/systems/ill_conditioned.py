@@ -82,8 +82,9 @@ def posterior_error(Filter, d: float, dtype=jnp.float64) -> float:
 def smallest_variance_ratio(result, d: float) -> float:
     """v^T P+ v of a :func:`posterior` over the exact smallest eigenvalue, v its eigenvector
     (:func:`smallest_variance`, for the test as the result's dtype holds it): 1 where the filter
-    resolves the direction the measurements pin down. Taken in float64 from the square root the filter keeps (SVD or Cholesky factor), which
-    resolves variances far below eps ||P+||; from P+ itself for the filters that keep P."""
+    resolves the direction the measurements pin down. Taken in float64 from the square root the
+    filter keeps (SVD or Cholesky factor), which resolves variances far below eps ||P+||; from
+    P+ itself for the filters that keep P."""
     exact, v = smallest_variance(d, result.cov.dtype)
     factor = result.factor
     if isinstance(factor, je.SVDFactor):
