@@ -89,6 +89,7 @@ from jaxest.riccati import (
     solve_filter_care as solve_filter_care,
     solve_filter_dare as solve_filter_dare,
 )
+from jaxest.scaling import ScaledState as ScaledState, scale_state as scale_state
 from jaxest.smoothers import SmootherResult as SmootherResult, rts_smooth as rts_smooth
 from jaxest.smoothers.iterated import (
     IteratedSmootherResult as IteratedSmootherResult,
@@ -127,12 +128,12 @@ __all__ = [
     "IteratedEKF", "IteratedSmootherResult", "KalmanFilter", "LinearGaussian", "NonlinearGaussian",
     "ObserverPrior", "ObserverStatus", "ParallelFilterResult", "ParallelKalmanFilter",
     "ParallelStatus", "ParticleFilter", "ParticleResult", "ParticleStatus", "RiccatiSolution",
-    "RiccatiStatus", "SVDEKF", "SVDFactor", "SaveAt", "Simulation", "SmootherResult",
+    "RiccatiStatus", "SVDEKF", "SVDFactor", "SaveAt", "ScaledState", "Simulation", "SmootherResult",
     "SquareRootKF", "Status", "StatusFlag", "SteadyStateGain", "SteadyStateKalmanFilter",
     "StepOutput", "UKF", "WienerSmoother", "arma_innovation_model", "check_gaussian_arguments",
     "finite_status", "fit", "fit_em", "iterated_smooth", "log_variance_standard_errors",
     "log_variances", "lqr_gain", "monte_carlo", "neg_loglik", "raise_if_failed", "resample",
-    "rts_smooth", "run", "sigma_point_rts_smooth", "simulate", "solve_care", "solve_dare",
+    "rts_smooth", "run", "scale_state", "sigma_point_rts_smooth", "simulate", "solve_care", "solve_dare",
     "solve_filter_care", "solve_filter_dare", "status_where", "steady_state_gain",
     "steady_state_smooth", "supervised_mse", "vmap_minor", "vmap_minor_fallbacks", "wiener_smooth",
 ]  # fmt: skip

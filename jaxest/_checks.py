@@ -22,6 +22,7 @@ from jaxest.models import (
     check_inputs_used,
     check_time_axes,
 )
+from jaxest.scaling import ScaledState
 
 
 def is_concrete(x) -> bool:
@@ -275,6 +276,16 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
             f"model: expected a Gaussian model (a subclass of jaxest.AbstractGaussianModel, "
             f"e.g. LinearGaussian or NonlinearGaussian), got {type(model).__name__}"
         )
+    if isinstance(model, ScaledState):  # check the model it scales, on the prior in its units
+        n = check_gaussian_prior(prior)
+        if np.shape(model.scale) != (n,):
+            raise ValueError(
+                f"model.scale: has shape {np.shape(model.scale)}, expected ({n},) as the prior"
+            )
+        check_precision(model, ys, prior)  # a float64 scale on a float32 prior widens the state
+        unscaled = Gaussian(model.state_mean(prior.mean), model.state_cov(prior.cov))
+        check_gaussian_arguments(model.model, ys, inputs, unscaled, positive_Q=positive_Q)
+        return
     check_measurements(ys)
     T, m_ys = np.shape(ys)
     if inputs is not None:
