@@ -14,9 +14,9 @@ condition number of the float32 run's P(k|k) over its steps (``cond_max``, its e
 in float64), to set beside 1 / eps(float32) = 8.4e6.
 
 ``scaled`` runs the same filter on the same model with the state x = s * x~, s the prior's
-standard deviations: f~(x~, u) = f(s x~, u) / s, G~ = G(s x~, u) / s (row-wise),
-h~(x~, u) = h(s x~, u), the prior's mean / s and covariance / (s s^T); the means are mapped
-back by s before they are compared. The model's states span h near 5 000 m to gyro biases of
+standard deviations (``jaxest.scale_state``, in float32): f~(x~, u) = f(s x~, u) / s,
+G~ = G(s x~, u) / s (row-wise), h~(x~, u) = h(s x~, u), the prior's mean / s and covariance /
+(s s^T); the means are mapped back by s before they are compared. The model's states span h near 5 000 m to gyro biases of
 1e-3 rad/s, and a covariance of such spread has directions that float32 factors do not resolve
 unless the state is scaled.
 """
@@ -31,7 +31,6 @@ jax.config.update("jax_enable_x64", True)
 
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
 from parallel_accuracy import in_standard_deviations  # noqa: E402
 
 import jaxest as je  # noqa: E402
@@ -55,15 +54,6 @@ def cast(tree, dtype):
     return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
 
 
-def scaled(model: je.NonlinearGaussian, prior: je.Gaussian, s):
-    """``model`` and ``prior`` for the state x~ = x / s (module docstring)."""
-    f = lambda x, u: model.transition_fn(s * x, u) / s
-    G = lambda x, u: model.noise_gain(s * x, u) / s[:, None]
-    h = lambda x, u: model.observation_fn(s * x, u)
-    scaled_model = je.NonlinearGaussian(f, h, model.Q, model.R, noise_gain=G)
-    return scaled_model, je.Gaussian(prior.mean / s, prior.cov / jnp.outer(s, s))
-
-
 def largest_condition_number(covs) -> float:
     """max over steps of :func:`~jaxest.setmembership.ellipsoid.condition_number` of the
     covariances ``covs`` (T, n, n), in float64: infinite where one is singular or indefinite."""
@@ -77,16 +67,18 @@ def float32_errors(Filter, data: flight_data.FlightData) -> dict:
         data, study.sim.INPUT_STD, study.REAL_OUTPUT_STD, Filter()
     )
     single = lambda tree: cast(tree, jnp.float32)
-    prior = study.real_prior(data)
-    s = np.sqrt(np.diag(np.asarray(prior.cov)))
-    model, prior = single(model), single(prior)
-    # (model, prior, what maps the run's means back to the state's units), scaled in float32
-    forms = {"as_given": (model, prior, 1.0), "scaled": (*scaled(model, prior, single(s)), s)}
+    model, prior = single(model), single(study.real_prior(data))
+    scaled_model, scaled_prior = je.scale_state(model, prior)  # in float32
+    # (model, prior, what maps the run's means back to the state's units)
+    forms = {
+        "as_given": (model, prior, lambda mean: mean),
+        "scaled": (scaled_model, scaled_prior, scaled_model.state_mean),
+    }
     row = {}
     for form, (m, p, back) in forms.items():
         result = je.run(Filter(), m, single(data.outputs), inputs=single(inputs), prior=p)
         row[form] = {
-            "mean_err_sd": in_standard_deviations(result.mean * back, reference),
+            "mean_err_sd": in_standard_deviations(back(result.mean), reference),
             "loglik_diff": float(result.loglik) - float(reference.loglik),
             "status": type(result).flags.describe(result.any_status),
             "cond_max": largest_condition_number(result.cov),
