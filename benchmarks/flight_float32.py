@@ -16,9 +16,9 @@ in float64), to set beside 1 / eps(float32) = 8.4e6.
 ``scaled`` runs the same filter on the same model with the state x = s * x~, s the prior's
 standard deviations (``jaxest.scale_state``, in float32): f~(x~, u) = f(s x~, u) / s,
 G~ = G(s x~, u) / s (row-wise), h~(x~, u) = h(s x~, u), the prior's mean / s and covariance /
-(s s^T); the means are mapped back by s before they are compared. The model's states span h near 5 000 m to gyro biases of
-1e-3 rad/s, and a covariance of such spread has directions that float32 factors do not resolve
-unless the state is scaled.
+(s s^T); the means are mapped back by s before they are compared. The model's states span h
+near 5 000 m to gyro biases of 1e-3 rad/s, and a covariance of such spread has directions that
+float32 factors do not resolve unless the state is scaled.
 """
 
 from __future__ import annotations

@@ -128,14 +128,15 @@ __all__ = [
     "IteratedEKF", "IteratedSmootherResult", "KalmanFilter", "LinearGaussian", "NonlinearGaussian",
     "ObserverPrior", "ObserverStatus", "ParallelFilterResult", "ParallelKalmanFilter",
     "ParallelStatus", "ParticleFilter", "ParticleResult", "ParticleStatus", "RiccatiSolution",
-    "RiccatiStatus", "SVDEKF", "SVDFactor", "SaveAt", "ScaledState", "Simulation", "SmootherResult",
-    "SquareRootKF", "Status", "StatusFlag", "SteadyStateGain", "SteadyStateKalmanFilter",
-    "StepOutput", "UKF", "WienerSmoother", "arma_innovation_model", "check_gaussian_arguments",
-    "finite_status", "fit", "fit_em", "iterated_smooth", "log_variance_standard_errors",
-    "log_variances", "lqr_gain", "monte_carlo", "neg_loglik", "raise_if_failed", "resample",
-    "rts_smooth", "run", "scale_state", "sigma_point_rts_smooth", "simulate", "solve_care", "solve_dare",
-    "solve_filter_care", "solve_filter_dare", "status_where", "steady_state_gain",
-    "steady_state_smooth", "supervised_mse", "vmap_minor", "vmap_minor_fallbacks", "wiener_smooth",
+    "RiccatiStatus", "SVDEKF", "SVDFactor", "SaveAt", "ScaledState", "Simulation",
+    "SmootherResult", "SquareRootKF", "Status", "StatusFlag", "SteadyStateGain",
+    "SteadyStateKalmanFilter", "StepOutput", "UKF", "WienerSmoother", "arma_innovation_model",
+    "check_gaussian_arguments", "finite_status", "fit", "fit_em", "iterated_smooth",
+    "log_variance_standard_errors", "log_variances", "lqr_gain", "monte_carlo", "neg_loglik",
+    "raise_if_failed", "resample", "rts_smooth", "run", "scale_state", "sigma_point_rts_smooth",
+    "simulate", "solve_care", "solve_dare", "solve_filter_care", "solve_filter_dare",
+    "status_where", "steady_state_gain", "steady_state_smooth", "supervised_mse", "vmap_minor",
+    "vmap_minor_fallbacks", "wiener_smooth",
 ]  # fmt: skip
 
 
