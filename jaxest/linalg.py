@@ -443,15 +443,26 @@ def _small_cholesky(A):
 
 @_small_cholesky.defjvp
 def _small_cholesky_jvp(primals, tangents):
-    """dL = L Phi(L^-1 dA L^-T), Phi = the lower triangle with its diagonal halved (Murray,
-    "Differentiation of the Cholesky decomposition", 2016); dA symmetrised first, as
-    ``jnp.linalg.cholesky``'s derivative does."""
     (A,), (dA,) = primals, tangents
     L = _small_cholesky(A)
-    Y = _unrolled_substitution(L, symmetrize(dA), True)
-    S = _unrolled_substitution(L, jnp.swapaxes(Y, -1, -2), True)
-    Phi = jnp.tril(S) - 0.5 * jnp.eye(A.shape[-1], dtype=A.dtype) * S
-    return L, _reduce_mm(L, Phi)
+    return L, cholesky_tangent(L, dA)
+
+
+def cholesky_tangent(L, dA):
+    """The tangent dL of the Cholesky factor L of A along dA: dL = L Phi(L^-1 dA L^-T), Phi = the
+    lower triangle with its diagonal halved (Murray, "Differentiation of the Cholesky
+    decomposition", 2016); dA symmetrised first, as ``jnp.linalg.cholesky``'s derivative does.
+    Substitutions unrolled up to ``SMALL_FACTOR``."""
+    if L.shape[-1] > SMALL_FACTOR:
+        solve = functools.partial(jax.scipy.linalg.solve_triangular, lower=True)
+        product = jnp.matmul
+    else:
+        solve = functools.partial(_unrolled_substitution, lower=True)
+        product = _reduce_mm
+    Y = solve(L, symmetrize(dA))
+    S = solve(L, jnp.swapaxes(Y, -1, -2))
+    Phi = jnp.tril(S) - 0.5 * jnp.eye(L.shape[-1], dtype=L.dtype) * S
+    return product(L, Phi)
 
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(2,))
