@@ -1,0 +1,136 @@
+"""Square-root RTS smoother: the backward pass of :func:`~jaxest.rts_smooth` on Cholesky factors,
+P = L L^T, with no difference of covariances.
+
+The covariance form's P(k|T) = P(k|k) + C_k (P(k+1|T) - P(k+1|k)) C_k^T subtracts P(k+1|k)
+from P(k+1|T), and its gain C_k = P(k|k) F_k^T P(k+1|k)^-1 inverts P(k+1|k): in float32 both
+lose P(k|T) and x(k|T) where P(k+1|k) is ill-conditioned (docs/robustness.md). Here each step
+triangularises (:func:`~jaxest.linalg.tria`, QR without forming the products) the joint
+square root of x_{k+1} and x_k given y_0..y_k, with Lq Lq^T = Q_k::
+
+    [[F_k L(k|k), G_k Lq], [L(k|k), 0]]  ->  [[L(k+1|k), 0], [M_k, N_k]]  (lower triangular)  (1)
+
+so that L(k+1|k) L(k+1|k)^T = P(k+1|k), M_k L(k+1|k)^T = P(k|k) F_k^T and N_k N_k^T = P(k|k) -
+C_k P(k+1|k) C_k^T, the covariance of x_k given x_{k+1}; then::
+
+    C_k    = M_k L(k+1|k)^-1                                  (one triangular solve)       (2)
+    L(k|T) = tria([N_k, C_k L(k+1|T)])                                                      (3)
+    x(k|T) = x(k|k) + C_k (x(k+1|T) - x(k+1|k))                                             (4)
+
+C_k's error grows with the condition number of L(k+1|k), the square root of P(k+1|k)'s. F_k is
+linearised at x(k|k) as in :func:`~jaxest.rts_smooth`, and the two give the same numbers in exact
+arithmetic. L(k|k) is the filter's own factor where its result holds one (``SaveAt(fields=(...,
+"factor"))`` of :class:`~jaxest.SquareRootKF` or an SVD filter, U diag(D) for the latter), else
+the Cholesky factor of P(k|k).
+
+Derivatives. The QR of (1) has no derivative where the array is rank deficient (fewer noise
+inputs than states), though every output depends on it only through smooth functions of the
+covariances. So each step is a custom JVP whose tangent is that of the covariance-form step at
+the same point (:func:`covariance_backward_step`), mapped to the factor's by
+:func:`~jaxest.linalg.cholesky_tangent` (P(k|T) positive definite).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from jaxest._status import finite_status
+from jaxest.filters.base import CholeskyFactor, FilterResult, SVDFactor
+from jaxest.filters.common import predicted_cov
+from jaxest.linalg import (
+    cholesky,
+    cholesky_tangent,
+    mm,
+    mv,
+    sandwich,
+    solve_triangular,
+    symmetrize,
+    tria,
+)
+from jaxest.models import psd_root
+from jaxest.smoothers.rts import SmootherResult, smoother_gain
+
+
+def filtered_square_roots(result: FilterResult) -> jax.Array:
+    """Square roots L(k|k) of the filtered covariances (T, n, n): the filter's Cholesky or SVD
+    factors where its result holds them, else the Cholesky factors of ``result.cov``."""
+    factor = result.factor
+    if isinstance(factor, CholeskyFactor):
+        return factor.chol
+    if isinstance(factor, SVDFactor):
+        return factor.U * factor.D[..., None, :]
+    return jax.vmap(cholesky)(result.cov)
+
+
+def covariance_backward_step(model, k, u, mean, cov, pred_mean_next, mean_next, cov_next):
+    """One step of the covariance form, with P(k+1|k) = F P(k|k) F^T + G Q G^T: x(k|T),
+    P(k|T) and P(k+1, k|T) = P(k+1|T) C_k^T from x(k|k), P(k|k), x(k+1|k), x(k+1|T), P(k+1|T)."""
+    _, F, G, Q = model.transition(mean, u, k)
+    pred_cov = predicted_cov(cov, F, G, Q)
+    gain = smoother_gain(mm(cov, F.T), pred_cov)
+    mean_s = mean + mv(gain, mean_next - pred_mean_next)
+    cov_s = symmetrize(cov + sandwich(gain, cov_next - pred_cov))
+    return mean_s, cov_s, mm(cov_next, gain.T)
+
+
+@eqx.filter_custom_jvp
+def square_root_step(model, k, u, mean, root, pred_mean_next, mean_next, root_next):
+    """Eqs (1)-(4): x(k|T), L(k|T) and P(k+1, k|T) = P(k+1|T) C_k^T, with the covariance form's
+    derivative (module docstring)."""
+    n = mean.shape[0]
+    _, F, G, Q = model.transition(mean, u, k)
+    noise = mm(G, psd_root(Q))
+    joint = tria(jnp.block([[mm(F, root), noise], [root, jnp.zeros_like(noise)]]))  # eq (1)
+    pred_root, M, N = joint[:n, :n], joint[n:, :n], joint[n:, n:]
+    gain = solve_triangular(pred_root.T, M.T, lower=False).T  # eq (2)
+    root_s = tria(jnp.concatenate([N, mm(gain, root_next)], 1))  # eq (3)
+    mean_s = mean + mv(gain, mean_next - pred_mean_next)  # eq (4)
+    return mean_s, root_s, mm(mm(root_next, root_next.T), gain.T)
+
+
+@square_root_step.def_jvp
+def _square_root_step_jvp(primals, tangents):
+    model, k, u, mean, root, pred_mean_next, mean_next, root_next = primals
+    t_model, _, t_u, t_mean, t_root, t_pred, t_mean_next, t_root_next = tangents
+    out = mean_s, root_s, cross = square_root_step(*primals)
+    zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
+    gram = lambda L: mm(L, L.T)
+    gram_tangent = lambda L, dL: symmetrize(2.0 * zeros(dL, L) @ L.T)  # matmul: transposable
+    reference = lambda model, u, *arrays: covariance_backward_step(model, k, u, *arrays)
+    primal_in = (mean, gram(root), pred_mean_next, mean_next, gram(root_next))
+    tangent_in = (
+        zeros(t_mean, mean), gram_tangent(root, t_root), zeros(t_pred, pred_mean_next),
+        zeros(t_mean_next, mean_next), gram_tangent(root_next, t_root_next),
+    )  # fmt: skip
+    _, (d_mean_s, d_cov_s, d_cross) = eqx.filter_jvp(
+        reference, (model, u, *primal_in), (t_model, t_u, *tangent_in)
+    )
+    return out, (d_mean_s, cholesky_tangent(root_s, d_cov_s), d_cross)
+
+
+def square_root_backward_pass(model, result: FilterResult, inputs, k0=0) -> SmootherResult:
+    """Eqs (1)-(4) of the module docstring for k = T-2, ..., 0, k counted from ``k0``."""
+    steps = k0 + jnp.arange(result.mean.shape[0] - 1)
+    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    roots = filtered_square_roots(result)
+
+    def backward(carry, args):
+        mean_next, root_next = carry
+        k, mean, root, pred_mean_next, u = args
+        mean_s, root_s, cross = square_root_step(
+            model, k, u, mean, root, pred_mean_next, mean_next, root_next
+        )
+        status = finite_status(mean_s, root_s)
+        return (mean_s, root_s), (mean_s, mm(root_s, root_s.T), cross, status)
+
+    last = (result.mean[-1], roots[-1])
+    args = (steps, result.mean[:-1], roots[:-1], result.predicted_mean[1:], u_seq)
+    _, (means, covs, cross, status) = jax.lax.scan(backward, last, args, reverse=True)
+    last_cov = mm(last[1], last[1].T)
+    return SmootherResult(
+        jnp.concatenate([means, last[0][None]]),
+        jnp.concatenate([covs, last_cov[None]]),
+        jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
+        cross,
+    )
