@@ -157,6 +157,13 @@ def smoother_gain(cross_cov, pred_cov_next):
     return cho_solve_lower(cholesky(pred_cov_next), cross_cov.T).T
 
 
+def smoothed_step(gain, mean, cov, pred_mean_next, pred_cov_next, mean_next, cov_next):
+    """x(k|T), P(k|T) (module docstring) and P(k+1, k|T) = P(k+1|T) C_k^T from the gain C_k."""
+    mean_s = mean + mv(gain, mean_next - pred_mean_next)
+    cov_s = symmetrize(cov + sandwich(gain, cov_next - pred_cov_next))
+    return mean_s, cov_s, mm(cov_next, gain.T)
+
+
 def backward_pass(result: FilterResult, inputs, cross_covariance, k0=0) -> SmootherResult:
     """The backward pass of the module docstring with C_k = D_k P(k+1|k)^-1, where
     D_k = ``cross_covariance(k, x(k|k), P(k|k), u_k)`` is the filter's covariance of x_k and
@@ -169,9 +176,9 @@ def backward_pass(result: FilterResult, inputs, cross_covariance, k0=0) -> Smoot
         mean_next, cov_next = carry
         k, mean, cov, pred_mean_next, pred_cov_next, u = args
         gain = smoother_gain(cross_covariance(k, mean, cov, u), pred_cov_next)
-        mean_s = mean + mv(gain, mean_next - pred_mean_next)
-        cov_s = symmetrize(cov + sandwich(gain, cov_next - pred_cov_next))
-        cross = mm(cov_next, gain.T)
+        mean_s, cov_s, cross = smoothed_step(
+            gain, mean, cov, pred_mean_next, pred_cov_next, mean_next, cov_next
+        )
         status = finite_status(mean_s, cov_s) | definiteness_status(cov_s)
         return (mean_s, cov_s), (mean_s, cov_s, cross, status)
 

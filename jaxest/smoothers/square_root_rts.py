@@ -38,18 +38,9 @@ import jax.numpy as jnp
 from jaxest._status import finite_status
 from jaxest.filters.base import CholeskyFactor, FilterResult, SVDFactor
 from jaxest.filters.common import predicted_cov
-from jaxest.linalg import (
-    cholesky,
-    cholesky_tangent,
-    mm,
-    mv,
-    sandwich,
-    solve_triangular,
-    symmetrize,
-    tria,
-)
+from jaxest.linalg import cholesky, cholesky_tangent, mm, mv, solve_triangular, symmetrize, tria
 from jaxest.models import psd_root
-from jaxest.smoothers.rts import SmootherResult, smoother_gain
+from jaxest.smoothers.rts import SmootherResult, smoothed_step, smoother_gain
 
 
 def filtered_square_roots(result: FilterResult) -> jax.Array:
@@ -69,9 +60,7 @@ def covariance_backward_step(model, k, u, mean, cov, pred_mean_next, mean_next, 
     _, F, G, Q = model.transition(mean, u, k)
     pred_cov = predicted_cov(cov, F, G, Q)
     gain = smoother_gain(mm(cov, F.T), pred_cov)
-    mean_s = mean + mv(gain, mean_next - pred_mean_next)
-    cov_s = symmetrize(cov + sandwich(gain, cov_next - pred_cov))
-    return mean_s, cov_s, mm(cov_next, gain.T)
+    return smoothed_step(gain, mean, cov, pred_mean_next, pred_cov, mean_next, cov_next)
 
 
 @eqx.filter_custom_jvp
@@ -93,7 +82,7 @@ def square_root_step(model, k, u, mean, root, pred_mean_next, mean_next, root_ne
 def _square_root_step_jvp(primals, tangents):
     model, k, u, mean, root, pred_mean_next, mean_next, root_next = primals
     t_model, _, t_u, t_mean, t_root, t_pred, t_mean_next, t_root_next = tangents
-    out = mean_s, root_s, cross = square_root_step(*primals)
+    out = square_root_step(*primals)
     zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     gram = lambda L: mm(L, L.T)
     gram_tangent = lambda L, dL: symmetrize(2.0 * zeros(dL, L) @ L.T)  # matmul: transposable
@@ -106,7 +95,7 @@ def _square_root_step_jvp(primals, tangents):
     _, (d_mean_s, d_cov_s, d_cross) = eqx.filter_jvp(
         reference, (model, u, *primal_in), (t_model, t_u, *tangent_in)
     )
-    return out, (d_mean_s, cholesky_tangent(root_s, d_cov_s), d_cross)
+    return out, (d_mean_s, cholesky_tangent(out[1], d_cov_s), d_cross)
 
 
 def square_root_backward_pass(model, result: FilterResult, inputs, k0=0) -> SmootherResult:
