@@ -105,16 +105,11 @@ def test_its_gradient_is_the_covariance_forms():
     np.testing.assert_allclose(grads[1], central, rtol=1e-6)
 
 
-@pytest.mark.parametrize(
-    "save, bound", [(True, 0.05), (False, 0.1)], ids=["factors", "covariances"]
-)
-def test_float32_keeps_what_the_covariance_form_loses(save, bound):
+def test_float32_keeps_what_the_covariance_form_loses():
     """The rotation of docs/robustness.md (Q = 1e-6, R = 3e-5, P0 = 300 I) in float32 after the
     square-root filter: the covariance-form smoother is 39 smoothed standard deviations off the
-    float64 reference, its P(k|T) indefinite. The square-root smoother's means were 0.012 off
-    from the filter's factors and 0.063 from its covariances (at the first step, whose P(0|0),
-    condition number 1e7, loses digits when formed in float32 and factored again), its variances
-    within 0.2 %, every P(k|T) positive definite, status OK."""
+    float64 reference, its P(k|T) indefinite. The square-root smoother's means were 0.012 off,
+    its variances within 0.006 %, every P(k|T) positive definite, status OK."""
     c, s = np.cos(0.3), np.sin(0.3)
     model = je.LinearGaussian(
         jnp.array([[c, -s], [s, c]]), jnp.array([[1.0, 0.5]]),
@@ -128,20 +123,27 @@ def test_float32_keeps_what_the_covariance_form_loses(save, bound):
     reference = je.rts_smooth(
         double(model), je.run(je.KalmanFilter(), double(model), double(ys), prior=double(prior))
     )
-    kwargs = {"save": with_factor(je.SquareRootKF)} if save else {}
-    filtered = je.run(je.SquareRootKF(), model, ys, prior=prior, **kwargs)
+    filtered = je.run(je.SquareRootKF(), model, ys, prior=prior, save=with_factor(je.SquareRootKF))
     smoothed = je.rts_smooth(model, filtered, square_root=True)
     assert smoothed.mean.dtype == smoothed.cov.dtype == jnp.float32
     sd = np.sqrt(np.diagonal(reference.cov, axis1=-2, axis2=-1))
-    assert np.max(np.abs(smoothed.mean - reference.mean) / sd) < bound
+    assert np.max(np.abs(smoothed.mean - reference.mean) / sd) < 0.05
     variances = np.diagonal(np.asarray(smoothed.cov, np.float64), axis1=-2, axis2=-1)
     assert np.max(np.abs(variances / sd**2 - 1)) < 0.01
     assert np.all(np.linalg.eigvalsh(np.asarray(smoothed.cov, np.float64))[:, 0] > 0)
     assert int(jnp.bitwise_or.reduce(smoothed.status)) == 0
 
 
-def test_parallel_and_square_root_together_are_refused():
+def test_a_factored_filters_result_without_its_factors_and_the_parallel_form_are_refused():
+    """From a SquareRootKF's covariances alone, factored again in float32, the smoother was 0.063
+    standard deviations off on the rotation above, and on 40 random systems 7 runs were not
+    finite and 2 off by 1.6 standard deviations or 113 % with status OK: it asks for the
+    factors instead."""
     model, prior, ys = pendulum()
+    for Filter in (je.SquareRootKF, je.SVDEKF):
+        filtered = je.run(Filter(), model, ys, prior=prior)
+        with pytest.raises(ValueError, match="result: the filter propagated .*save=SaveAt"):
+            je.rts_smooth(model, filtered, square_root=True)
     filtered = je.run(je.EKF(), model, ys, prior=prior)
     with pytest.raises(ValueError, match="square_root: the parallel smoother has no square-root"):
         je.rts_smooth(model, filtered, parallel=True, square_root=True)

@@ -17,7 +17,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_inputs, concrete_k0, first_input, model_shapes
 from jaxest._status import finite_status
-from jaxest.filters.base import FilterResult
+from jaxest.filters.base import CholeskyFactor, FilterResult, SVDFactor
 from jaxest.filters.common import definiteness_status
 from jaxest.linalg import (
     cho_solve_lower,
@@ -92,6 +92,19 @@ def check_smoother_arguments(smoother: str, model, result, inputs, k0=0) -> None
         check_time_axes(model, first, T)
 
 
+def check_factors_saved(result: FilterResult) -> None:
+    """A ``ValueError`` where ``result`` comes from a filter that propagates a square-root factor
+    (its final state holds one) but holds only the covariances, which the square-root smoother
+    would factor again in the working dtype."""
+    kept = result.final_state.factor
+    if isinstance(kept, CholeskyFactor | SVDFactor) and result.factor is None:
+        raise ValueError(
+            f"result: the filter propagated {type(kept).__name__}s but its result holds only the "
+            f"covariances, whose Cholesky factors lose in float32 what the filter kept; run it "
+            f"with save=SaveAt(fields=(..., 'factor')) for rts_smooth(..., square_root=True)"
+        )
+
+
 @working_precision_by_default
 def rts_smooth(
     model,
@@ -112,12 +125,13 @@ def rts_smooth(
     (:mod:`jaxest.smoothers.parallel`). ``square_root=True``: the same smoother on Cholesky
     factors (:mod:`jaxest.smoothers.square_root_rts`), sequential only: no difference of
     covariances, so P(k|T) stays positive definite and accurate in float32 where the covariance
-    form loses it. It starts from the filter's own factors where the result holds them: save
-    them (``SaveAt(fields=(..., "factor"))`` of :class:`~jaxest.SquareRootKF` or an SVD
-    filter), since a float32 P(k|k) of very different spreads loses in its Cholesky factor what
-    the filter's factor kept (docs/robustness.md: 40 random systems, every one within 0.005
-    standard deviations from the factors; from the covariances 7 not finite and 2 off with
-    status OK).
+    form loses it. It starts from the filter's own factors: a factored filter's
+    (:class:`~jaxest.SquareRootKF`, the SVD filters) result must hold them
+    (``SaveAt(fields=(..., "factor"))``, else ``ValueError``), since a float32 P(k|k) of very
+    different spreads loses in its Cholesky factor what the filter's factor kept
+    (docs/robustness.md: on 40 random systems every run within 0.005 standard deviations from
+    the factors; from the covariances 7 not finite and 2 off with status OK). Other filters'
+    results are smoothed from the Cholesky factors of their covariances.
     """
     if parallel and square_root:
         raise ValueError(
@@ -125,6 +139,8 @@ def rts_smooth(
             "for the square-root smoother or square_root=False for the parallel one"
         )
     check_smoother_arguments("rts_smooth", model, result, inputs, k0)
+    if square_root:
+        check_factors_saved(result)
     if parallel:
         from jaxest.smoothers.parallel import parallel_rts_smooth
 
