@@ -30,7 +30,10 @@ class ScaledState(AbstractGaussianModel):
     Its means and covariances are those of x / s; map them back with :meth:`state_mean` and
     :meth:`state_cov`, and give a prior in the new units with :meth:`scale_prior` (or build both
     with :func:`scale_state`). The Jacobians are the model's own (analytic where it gives them),
-    rescaled. A gradient reaches the model's parameters as through the model itself.
+    rescaled. A gradient reaches the model's parameters as through the model itself. A wrapped
+    :class:`~jaxest.LinearGaussian` is not one itself: what needs one (the Kalman filter's
+    closed-form gradient, the parallel and steady-state filters, :func:`~jaxest.fit_em`) takes
+    the model, or a LinearGaussian with S^-1 F S, H S, S^-1 G and S^-1 B built from it.
     """
 
     model: AbstractGaussianModel
