@@ -19,9 +19,14 @@ class StatusFlag(enum.IntFlag):
 
     @classmethod
     def describe(cls, code) -> str:
-        """Names of the flags set in ``code`` (``"OK"`` for 0)."""
+        """Names of the flags set in ``code`` (``"OK"`` for 0 only): bits that are not this
+        family's (another family's flags, read with the core's :class:`Status`) are named as
+        such, not dropped."""
         code = int(code)
         names = [flag.name for flag in cls if flag.value and code & flag.value]
+        other = code & ~sum(flag.value for flag in cls)
+        if other:
+            names.append(f"bits {other} not in {cls.__name__} (another family's flags)")
         return ", ".join(names) if names else "OK"
 
     @classmethod

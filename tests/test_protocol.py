@@ -295,6 +295,8 @@ def test_status_flags_extend_per_family():
     Family = je.Status.extend("Family", STUCK=(64, "unstick it"))
     assert Family.NONFINITE == je.Status.NONFINITE and Family.STUCK == 64
     assert Family.describe(65) == "NONFINITE, STUCK" and je.Status.describe(0) == "OK"
+    # read with the core's flags, a family's bit is named, not described as OK (it was)
+    assert je.Status.describe(65) == "NONFINITE, bits 64 not in Status (another family's flags)"
     assert "unstick it" in Family.explain(64)
     with pytest.raises(ValueError, match="STUCK"):
         je.Status.extend("Clash", STUCK=(2, "taken"))
