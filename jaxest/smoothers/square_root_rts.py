@@ -19,14 +19,22 @@ C_k P(k+1|k) C_k^T, the covariance of x_k given x_{k+1}; then::
 C_k's error grows with the condition number of L(k+1|k), the square root of P(k+1|k)'s. F_k is
 linearised at x(k|k) as in :func:`~jaxest.rts_smooth`, and the two give the same numbers in exact
 arithmetic. L(k|k) is the filter's own factor where its result holds one (``SaveAt(fields=(...,
-"factor"))`` of :class:`~jaxest.SquareRootKF` or an SVD filter, U diag(D) for the latter), else
-the Cholesky factor of P(k|k).
+"factor"))`` of :class:`~jaxest.SquareRootKF`, the square-root parallel filter or an SVD filter,
+U diag(D) for the latter), else the Cholesky factor of P(k|k). x(k+1|k) in (4) is f(x(k|k)),
+computed here: a filter whose predicted mean carries rounding of its own, independent of its
+x(k|k)'s (the parallel filter's, in float32), would otherwise leave it uncancelled, multiplied
+by C_k (85 smoothed standard deviations on docs/robustness.md's rotation; 0.0014 this way).
+
+Parallel in time: the elements of :mod:`jaxest.smoothers.parallel` (E_k = C_k, g_k = x(k|k) -
+C_k x(k+1|k)) with a square root D_k = N_k of their covariance, combined as a sum of squares,
+D = tria([E_k D_s, D_k]) (:func:`combine_square_roots`).
 
 Derivatives. The QR of (1) has no derivative where the array is rank deficient (fewer noise
 inputs than states), though every output depends on it only through smooth functions of the
-covariances. So each step is a custom JVP whose tangent is that of the covariance-form step at
-the same point (:func:`covariance_backward_step`), mapped to the factor's by
-:func:`~jaxest.linalg.cholesky_tangent` (P(k|T) positive definite).
+covariances. So each sequential step is a custom JVP whose tangent is that of the covariance-form
+step at the same point (:func:`covariance_backward_step`), mapped to the factor's by
+:func:`~jaxest.linalg.cholesky_tangent` (P(k|T) positive definite), and the parallel pass one
+whose tangent is the covariance-form parallel smoother's (:func:`parallel_covariance_pass`).
 """
 
 from __future__ import annotations
@@ -38,8 +46,19 @@ import jax.numpy as jnp
 from jaxest._status import finite_status
 from jaxest.filters.base import CholeskyFactor, FilterResult, SVDFactor
 from jaxest.filters.common import predicted_cov
-from jaxest.linalg import cholesky, cholesky_tangent, mm, mv, solve_triangular, symmetrize, tria
+from jaxest.linalg import (
+    after,
+    cholesky,
+    cholesky_tangent,
+    mm,
+    mv,
+    solve_triangular,
+    symmetrize,
+    tria,
+)
 from jaxest.models import psd_root
+from jaxest.scan import associative_scan
+from jaxest.smoothers.parallel import parallel_rts_smooth
 from jaxest.smoothers.rts import SmootherResult, smoothed_step, smoother_gain
 
 
@@ -54,25 +73,32 @@ def filtered_square_roots(result: FilterResult) -> jax.Array:
     return jax.vmap(cholesky)(result.cov)
 
 
-def covariance_backward_step(model, k, u, mean, cov, pred_mean_next, mean_next, cov_next):
-    """One step of the covariance form, with P(k+1|k) = F P(k|k) F^T + G Q G^T: x(k|T),
-    P(k|T) and P(k+1, k|T) = P(k+1|T) C_k^T from x(k|k), P(k|k), x(k+1|k), x(k+1|T), P(k+1|T)."""
-    _, F, G, Q = model.transition(mean, u, k)
+def covariance_backward_step(model, k, u, mean, cov, mean_next, cov_next):
+    """One step of the covariance form, with x(k+1|k) = f(x(k|k)) and P(k+1|k) = F P(k|k) F^T
+    + G Q G^T: x(k|T), P(k|T) and P(k+1, k|T) = P(k+1|T) C_k^T from x(k|k), P(k|k), x(k+1|T),
+    P(k+1|T)."""
+    pred_mean_next, F, G, Q = model.transition(mean, u, k)
     pred_cov = predicted_cov(cov, F, G, Q)
     gain = smoother_gain(mm(cov, F.T), pred_cov)
     return smoothed_step(gain, mean, cov, pred_mean_next, pred_cov, mean_next, cov_next)
 
 
-@eqx.filter_custom_jvp
-def square_root_step(model, k, u, mean, root, pred_mean_next, mean_next, root_next):
-    """Eqs (1)-(4): x(k|T), L(k|T) and P(k+1, k|T) = P(k+1|T) C_k^T, with the covariance form's
-    derivative (module docstring)."""
+def joint_factors(model, k, u, mean, root):
+    """x(k+1|k) = f(x(k|k)) and eqs (1)-(2): the gain C_k and N_k, N_k N_k^T = P(k|k) - C_k
+    P(k+1|k) C_k^T, from x(k|k) and L(k|k)."""
     n = mean.shape[0]
-    _, F, G, Q = model.transition(mean, u, k)
+    pred_mean, F, G, Q = model.transition(mean, u, k)
     noise = mm(G, psd_root(Q))
     joint = tria(jnp.block([[mm(F, root), noise], [root, jnp.zeros_like(noise)]]))  # eq (1)
     pred_root, M, N = joint[:n, :n], joint[n:, :n], joint[n:, n:]
-    gain = solve_triangular(pred_root.T, M.T, lower=False).T  # eq (2)
+    return pred_mean, solve_triangular(pred_root.T, M.T, lower=False).T, N  # eq (2)
+
+
+@eqx.filter_custom_jvp
+def square_root_step(model, k, u, mean, root, mean_next, root_next):
+    """Eqs (1)-(4): x(k|T), L(k|T) and P(k+1, k|T) = P(k+1|T) C_k^T, with the covariance form's
+    derivative (module docstring)."""
+    pred_mean_next, gain, N = joint_factors(model, k, u, mean, root)
     root_s = tria(jnp.concatenate([N, mm(gain, root_next)], 1))  # eq (3)
     mean_s = mean + mv(gain, mean_next - pred_mean_next)  # eq (4)
     return mean_s, root_s, mm(mm(root_next, root_next.T), gain.T)
@@ -80,16 +106,16 @@ def square_root_step(model, k, u, mean, root, pred_mean_next, mean_next, root_ne
 
 @square_root_step.def_jvp
 def _square_root_step_jvp(primals, tangents):
-    model, k, u, mean, root, pred_mean_next, mean_next, root_next = primals
-    t_model, _, t_u, t_mean, t_root, t_pred, t_mean_next, t_root_next = tangents
+    model, k, u, mean, root, mean_next, root_next = primals
+    t_model, _, t_u, t_mean, t_root, t_mean_next, t_root_next = tangents
     out = square_root_step(*primals)
     zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     gram = lambda L: mm(L, L.T)
     gram_tangent = lambda L, dL: symmetrize(2.0 * zeros(dL, L) @ L.T)  # matmul: transposable
     reference = lambda model, u, *arrays: covariance_backward_step(model, k, u, *arrays)
-    primal_in = (mean, gram(root), pred_mean_next, mean_next, gram(root_next))
+    primal_in = (mean, gram(root), mean_next, gram(root_next))
     tangent_in = (
-        zeros(t_mean, mean), gram_tangent(root, t_root), zeros(t_pred, pred_mean_next),
+        zeros(t_mean, mean), gram_tangent(root, t_root),
         zeros(t_mean_next, mean_next), gram_tangent(root_next, t_root_next),
     )  # fmt: skip
     _, (d_mean_s, d_cov_s, d_cross) = eqx.filter_jvp(
@@ -106,15 +132,13 @@ def square_root_backward_pass(model, result: FilterResult, inputs, k0=0) -> Smoo
 
     def backward(carry, args):
         mean_next, root_next = carry
-        k, mean, root, pred_mean_next, u = args
-        mean_s, root_s, cross = square_root_step(
-            model, k, u, mean, root, pred_mean_next, mean_next, root_next
-        )
+        k, mean, root, u = args
+        mean_s, root_s, cross = square_root_step(model, k, u, mean, root, mean_next, root_next)
         status = finite_status(mean_s, root_s)
         return (mean_s, root_s), (mean_s, mm(root_s, root_s.T), cross, status)
 
     last = (result.mean[-1], roots[-1])
-    args = (steps, result.mean[:-1], roots[:-1], result.predicted_mean[1:], u_seq)
+    args = (steps, result.mean[:-1], roots[:-1], u_seq)
     _, (means, covs, cross, status) = jax.lax.scan(backward, last, args, reverse=True)
     last_cov = mm(last[1], last[1].T)
     return SmootherResult(
@@ -123,3 +147,91 @@ def square_root_backward_pass(model, result: FilterResult, inputs, k0=0) -> Smoo
         jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
         cross,
     )
+
+
+class SquareRootElement(eqx.Module):
+    """An element of the parallel smoother (:mod:`jaxest.smoothers.parallel`, its eq (1)) with
+    a square root D of its covariance: x_k = E x_{k+1} + g + N(0, D D^T)."""
+
+    E: jax.Array
+    g: jax.Array
+    D: jax.Array
+
+
+def combine_square_roots(later: SquareRootElement, earlier: SquareRootElement):
+    """The parallel smoother's eq (2) with L = D D^T: D = tria([E_k D_s, D_k]), a sum of
+    squares."""
+    E = earlier.E
+    D = tria(jnp.concatenate([E @ later.D, earlier.D], -1))
+    return SquareRootElement(E @ later.E, E @ later.g + earlier.g, D)
+
+
+@eqx.filter_custom_jvp
+def parallel_square_root_pass(model, means, roots, inputs, k0):
+    """x(k|T), P(k|T) and P(k+1, k|T) by the parallel smoother's reverse associative scan on
+    square-root elements: E_k = C_k, g_k = x(k|k) - C_k x(k+1|k), D_k = N_k from eqs (1)-(2)
+    (the last: E = 0, g = x(T-1|T-1), D = L(T-1|T-1)), combined by
+    :func:`combine_square_roots`; differentiated as the covariance-form parallel smoother
+    (:func:`parallel_covariance_pass`)."""
+    T, n = means.shape
+    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    factors = lambda k, u, mean, root: joint_factors(model, k, u, mean, root)
+    pred_means, gains, N = jax.vmap(factors)(k0 + jnp.arange(T - 1), u_seq, means[:-1], roots[:-1])
+    g = means[:-1] - jnp.einsum("kij,kj->ki", gains, pred_means)
+    last = SquareRootElement(jnp.zeros((1, n, n), g.dtype), means[-1:], roots[-1:])
+    elements = jax.tree.map(
+        lambda a, b: jnp.concatenate([a, b]), SquareRootElement(gains, g, N), last
+    )
+    suffixes = associative_scan(jax.vmap(combine_square_roots), elements, reverse=True)
+    covs = suffixes.D @ jnp.swapaxes(suffixes.D, -1, -2)
+    return suffixes.g, covs, covs[1:] @ jnp.swapaxes(gains, -1, -2)
+
+
+def parallel_covariance_pass(model, means, covs, inputs, k0):
+    """The covariance-form parallel smoother (:func:`~jaxest.smoothers.parallel.parallel_rts_smooth`)
+    on the same filtered moments, x(k+1|k) = f(x(k|k)), P(k+1|k) = F P(k|k) F^T + G Q G^T."""
+    T = means.shape[0]
+    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+
+    def predicted(k, u, mean, cov):
+        pred_mean, F, G, Q = model.transition(mean, u, k)
+        return pred_mean, predicted_cov(cov, F, G, Q)
+
+    steps = k0 + jnp.arange(T - 1)
+    pred_means, pred_covs = jax.vmap(predicted)(steps, u_seq, means[:-1], covs[:-1])
+    moments = FilterResult(
+        final_state=None, mean=means, cov=covs,
+        predicted_mean=jnp.concatenate([means[:1], pred_means]),
+        predicted_cov=jnp.concatenate([covs[:1], pred_covs]),
+        status=jnp.zeros(T, jnp.int32),
+    )  # fmt: skip
+    smoothed = parallel_rts_smooth(model, moments, inputs, k0)
+    return smoothed.mean, smoothed.cov, smoothed.cross_cov
+
+
+@parallel_square_root_pass.def_jvp
+def _parallel_square_root_pass_jvp(primals, tangents):
+    model, means, roots, inputs, k0 = primals
+    t_model, t_means, t_roots, t_inputs, _ = tangents
+    out = parallel_square_root_pass(*primals)
+    zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
+    grams = roots @ jnp.swapaxes(roots, -1, -2)
+    d_grams = zeros(t_roots, roots) @ jnp.swapaxes(roots, -1, -2)
+    d_grams = d_grams + jnp.swapaxes(d_grams, -1, -2)
+    reference = lambda model, means, covs, inputs: parallel_covariance_pass(
+        model, means, covs, inputs, k0
+    )
+    _, d_out = eqx.filter_jvp(
+        reference,
+        (model, means, grams, inputs),
+        (t_model, zeros(t_means, means), d_grams, t_inputs),
+    )
+    return out, d_out
+
+
+def parallel_square_root_rts_smooth(model, result: FilterResult, inputs, k0) -> SmootherResult:
+    """What :func:`~jaxest.rts_smooth` with ``parallel=True, square_root=True`` runs."""
+    roots = after(filtered_square_roots(result), result)  # no batched QR beside the filter's
+    means, covs, cross = parallel_square_root_pass(model, result.mean, roots, inputs, k0)
+    status = jax.vmap(finite_status)(means, covs)
+    return SmootherResult(means, covs, status | result.status, cross)
