@@ -5,9 +5,10 @@ float32").
 Each system: F a random rotation times ``--decay``, H random (m x n), Q and R random SPD scaled
 to ``--q`` and ``--r``, P0 = ``--p0`` I, T steps simulated in float64 and rounded to float32.
 The reference is a NumPy Kalman filter and RTS smoother in float64 on the same rounded numbers.
-Each smoother runs after ``SquareRootKF`` in float32 (its Cholesky factors saved) and after
-``KalmanFilter`` (the square-root smoother from the Cholesky factors of its covariances); per
-run: the largest error of the smoothed means in the
+Each smoother (sequential and parallel, covariance and square-root form) runs after
+``SquareRootKF`` and the square-root ``ParallelKalmanFilter`` in float32 (their Cholesky factors
+saved) and after ``KalmanFilter`` (the square-root smoother from the Cholesky factors of its
+covariances); per run: the largest error of the smoothed means in the
 reference's smoothed standard deviations, the largest relative error of the smoothed variances,
 whether every P(k|T) is finite and whether some is indefinite, and the status flags. The summary
 counts the systems with a mean over one standard deviation off or a variance off by 100 % or more
@@ -31,7 +32,18 @@ import jaxest as je  # noqa: E402
 from jaxest.report import emit_json  # noqa: E402
 
 #: (filter, whether its result keeps its Cholesky factors, which the square-root smoother reads)
-RUNS = {"SquareRootKF": (je.SquareRootKF, True), "KalmanFilter": (je.KalmanFilter, False)}
+RUNS = {
+    "SquareRootKF": (je.SquareRootKF, True),
+    "ParallelKalmanFilter": (je.ParallelKalmanFilter, True),
+    "KalmanFilter": (je.KalmanFilter, False),
+}
+#: the smoothers: rts_smooth's (parallel, square_root)
+FORMS = {
+    "covariance": (False, False),
+    "square_root": (False, True),
+    "parallel covariance": (True, False),
+    "parallel square_root": (True, True),
+}
 
 
 def random_system(rng, n, m, decay, q, r):
@@ -61,7 +73,9 @@ def numpy_smoother(F, H, Q, R, m0, P0, ys):
     return np.array(means), np.array(covs)
 
 
-def errors(smoothed: je.SmootherResult, means, covs) -> dict:
+def errors(smoothed: je.SmootherResult, means, covs, flags) -> dict:
+    """The run's errors against the reference ``means`` and ``covs``; its status named by the
+    filter's ``flags`` (the smoother's status holds the filter's bits)."""
     sd = np.sqrt(np.diagonal(covs, axis1=1, axis2=2))
     cov = np.asarray(smoothed.cov, np.float64)
     variances = np.diagonal(cov, axis1=1, axis2=2)
@@ -70,7 +84,7 @@ def errors(smoothed: je.SmootherResult, means, covs) -> dict:
         "var_rel_err": float(np.max(np.abs(variances / sd**2 - 1))),
         "finite": bool(np.all(np.isfinite(cov))),
         "indefinite": bool(np.all(np.isfinite(cov)) and np.any(np.linalg.eigvalsh(cov)[:, 0] <= 0)),
-        "status": je.Status.describe(jnp.bitwise_or.reduce(smoothed.status)),
+        "status": flags.describe(jnp.bitwise_or.reduce(smoothed.status)),
     }
 
 
@@ -89,9 +103,9 @@ def one_system(seed: int, args) -> dict:
     for name, (Filter, factors) in RUNS.items():
         save = je.SaveAt(fields=Filter.default_fields + (("factor",) if factors else ()))
         filtered = je.run(Filter(), model, ys, prior=prior, save=save)
-        for form, square_root in (("covariance", False), ("square_root", True)):
-            smoothed = je.rts_smooth(model, filtered, square_root=square_root)
-            row[f"{name}, {form}"] = errors(smoothed, means, covs)
+        for form, (parallel, square_root) in FORMS.items():
+            smoothed = je.rts_smooth(model, filtered, parallel=parallel, square_root=square_root)
+            row[f"{name}, {form}"] = errors(smoothed, means, covs, filtered.flags)
     return row
 
 
