@@ -23,7 +23,7 @@ arithmetic. L(k|k) is the filter's own factor where its result holds one (``Save
 U diag(D) for the latter), else the Cholesky factor of P(k|k). x(k+1|k) in (4) is f(x(k|k)),
 computed here: a filter whose predicted mean carries rounding of its own, independent of its
 x(k|k)'s (the parallel filter's, in float32), would otherwise leave it uncancelled, multiplied
-by C_k (85 smoothed standard deviations on docs/robustness.md's rotation; 0.0014 this way).
+by C_k (19 smoothed standard deviations on docs/robustness.md's rotation; 0.0014 this way).
 
 Parallel in time: the elements of :mod:`jaxest.smoothers.parallel` (E_k = C_k, g_k = x(k|k) -
 C_k x(k+1|k)) with a square root D_k = N_k of their covariance, combined as a sum of squares,
