@@ -79,6 +79,16 @@ def factor_tangent_to_cov(U, D, dU, dD):
     return half + half.T
 
 
+def root_tangent_to_cov(L, dL):
+    """The covariance tangent dP = dL L^T + L dL^T of P = L L^T (any leading axes; ``dL`` None
+    for a zero tangent), in ``jnp.matmul``, which reverse mode can transpose where ``dL`` is
+    a tangent."""
+    if dL is None:
+        return jnp.zeros(L.shape[:-1] + L.shape[-2:-1], L.dtype)
+    half = dL @ jnp.swapaxes(L, -1, -2)
+    return half + jnp.swapaxes(half, -1, -2)
+
+
 def cov_tangent_to_factor(U, D, dP):
     """A factor tangent (dU, dD) = (dP U^-T D^-2 / 2, 0) whose covariance tangent is ``dP``
     (``factor_tangent_to_cov``), defined where D has repeated entries, where the SVD's own

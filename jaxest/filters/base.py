@@ -34,10 +34,20 @@ class AbstractCovarianceFactor(eqx.Module):
     """A covariance P held in some factored form; ``cov`` gives P itself. Concrete factors
     also have a classmethod ``from_cov(P)``, which :meth:`AbstractGaussianFilter.init` uses."""
 
+    #: whether the factor is itself a square root of P (Cholesky, SVD), which keeps variances
+    #: far below eps times the largest that P formed in the working dtype loses
+    is_square_root: ClassVar[bool] = False
+
     @property
     @abc.abstractmethod
     def cov(self) -> Float[Array, "n n"]:
         """P."""
+
+    @property
+    def square_root(self) -> Float[Array, "n n"]:
+        """Some L with L L^T = P (any leading axes): the factor itself where it is one
+        (:attr:`is_square_root`), else the Cholesky factor of P."""
+        return cholesky(self.cov)
 
 
 class Covariance(AbstractCovarianceFactor):
@@ -57,6 +67,7 @@ class Covariance(AbstractCovarianceFactor):
 class CholeskyFactor(AbstractCovarianceFactor):
     """Lower-triangular S with P = S S^T."""
 
+    is_square_root: ClassVar[bool] = True
     chol: Float[Array, "n n"]
 
     @classmethod
@@ -67,10 +78,15 @@ class CholeskyFactor(AbstractCovarianceFactor):
     def cov(self):
         return self.chol @ jnp.swapaxes(self.chol, -1, -2)
 
+    @property
+    def square_root(self):
+        return self.chol
+
 
 class SVDFactor(AbstractCovarianceFactor):
     """P = U diag(D)^2 U^T, U orthogonal, D >= 0 (the SVD filters' factors)."""
 
+    is_square_root: ClassVar[bool] = True
     U: Float[Array, "n n"]
     D: Float[Array, " n"]
 
@@ -82,6 +98,10 @@ class SVDFactor(AbstractCovarianceFactor):
     @property
     def cov(self):
         return cov_from_factor(self.U, self.D)
+
+    @property
+    def square_root(self):
+        return self.U * self.D[..., None, :]
 
 
 class InformationMatrix(AbstractCovarianceFactor):

@@ -28,7 +28,12 @@ from jaxest.filters.base import FilterResult
 from jaxest.filters.common import definiteness_status
 from jaxest.linalg import after, mm, symmetrize
 from jaxest.scan import associative_scan
-from jaxest.smoothers.rts import SmootherResult, smoother_gain, transition_cross_covariance
+from jaxest.smoothers.rts import (
+    SmootherResult,
+    backward_steps,
+    smoother_gain,
+    transition_cross_covariance,
+)
 
 
 def smoother_gains(model, result: FilterResult, inputs=None, k0=0):
@@ -38,14 +43,13 @@ def smoother_gains(model, result: FilterResult, inputs=None, k0=0):
     square-root parallel filter's batched QR of its outputs and deadlock jaxlib 0.10 on CPU
     (n > 8; :func:`~jaxest.linalg.after`)."""
     T = result.mean.shape[0]
-    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
     pred_cov = after(result.predicted_cov[1:], result)
     cross_covariance = transition_cross_covariance(model)
 
     def gain(k, mean, cov, pred_cov_next, u):
         return smoother_gain(cross_covariance(k, mean, cov, u), pred_cov_next)
 
-    steps = k0 + jnp.arange(T - 1)
+    steps, u_seq = backward_steps(T, inputs, k0)
     return jax.vmap(gain)(steps, result.mean[:-1], result.cov[:-1], pred_cov, u_seq)
 
 

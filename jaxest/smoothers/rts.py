@@ -17,7 +17,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_inputs, concrete_k0, first_input, model_shapes
 from jaxest._status import finite_status
-from jaxest.filters.base import CholeskyFactor, FilterResult, SVDFactor
+from jaxest.filters.base import FilterResult
 from jaxest.filters.common import definiteness_status
 from jaxest.linalg import (
     cho_solve_lower,
@@ -97,7 +97,7 @@ def check_factors_saved(result: FilterResult) -> None:
     (its final state holds one) but holds only the covariances, which the square-root smoother
     would factor again in the working dtype."""
     kept = result.final_state.factor
-    if isinstance(kept, CholeskyFactor | SVDFactor) and result.factor is None:
+    if kept.is_square_root and result.factor is None:
         raise ValueError(
             f"result: the filter propagated {type(kept).__name__}s but its result holds only the "
             f"covariances, whose Cholesky factors lose in float32 what the filter kept; run it "
@@ -180,13 +180,19 @@ def smoothed_step(gain, mean, cov, pred_mean_next, pred_cov_next, mean_next, cov
     return mean_s, cov_s, mm(cov_next, gain.T)
 
 
+def backward_steps(T: int, inputs, k0):
+    """The time indices k0 .. k0 + T - 2 of a backward pass's steps over T filtered states, and
+    their inputs u_k (``None`` without inputs)."""
+    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    return k0 + jnp.arange(T - 1), u_seq
+
+
 def backward_pass(result: FilterResult, inputs, cross_covariance, k0=0) -> SmootherResult:
     """The backward pass of the module docstring with C_k = D_k P(k+1|k)^-1, where
     D_k = ``cross_covariance(k, x(k|k), P(k|k), u_k)`` is the filter's covariance of x_k and
     x_{k+1} given y_0..y_k (P(k|k) F_k^T here; the sigma points' in
     :mod:`jaxest.smoothers.sigma_point_rts`), k counted from ``k0``."""
-    steps = k0 + jnp.arange(result.mean.shape[0] - 1)
-    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    steps, u_seq = backward_steps(result.mean.shape[0], inputs, k0)
 
     def backward(carry, args):
         mean_next, cov_next = carry

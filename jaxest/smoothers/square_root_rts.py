@@ -44,33 +44,28 @@ import jax
 import jax.numpy as jnp
 
 from jaxest._status import finite_status
-from jaxest.filters.base import CholeskyFactor, FilterResult, SVDFactor
+from jaxest.filters.base import Covariance, FilterResult
 from jaxest.filters.common import predicted_cov
 from jaxest.linalg import (
     after,
-    cholesky,
     cholesky_tangent,
     mm,
     mv,
+    root_tangent_to_cov,
     solve_triangular,
-    symmetrize,
     tria,
 )
 from jaxest.models import psd_root
 from jaxest.scan import associative_scan
 from jaxest.smoothers.parallel import parallel_rts_smooth
-from jaxest.smoothers.rts import SmootherResult, smoothed_step, smoother_gain
+from jaxest.smoothers.rts import SmootherResult, backward_steps, smoothed_step, smoother_gain
 
 
 def filtered_square_roots(result: FilterResult) -> jax.Array:
-    """Square roots L(k|k) of the filtered covariances (T, n, n): the filter's Cholesky or SVD
-    factors where its result holds them, else the Cholesky factors of ``result.cov``."""
-    factor = result.factor
-    if isinstance(factor, CholeskyFactor):
-        return factor.chol
-    if isinstance(factor, SVDFactor):
-        return factor.U * factor.D[..., None, :]
-    return jax.vmap(cholesky)(result.cov)
+    """Square roots L(k|k) of the filtered covariances (T, n, n): the filter's factors where its
+    result holds them, else the Cholesky factors of ``result.cov``."""
+    factor = Covariance(result.cov) if result.factor is None else result.factor
+    return factor.square_root
 
 
 def covariance_backward_step(model, k, u, mean, cov, mean_next, cov_next):
@@ -111,12 +106,11 @@ def _square_root_step_jvp(primals, tangents):
     out = square_root_step(*primals)
     zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     gram = lambda L: mm(L, L.T)
-    gram_tangent = lambda L, dL: symmetrize(2.0 * zeros(dL, L) @ L.T)  # matmul: transposable
     reference = lambda model, u, *arrays: covariance_backward_step(model, k, u, *arrays)
     primal_in = (mean, gram(root), mean_next, gram(root_next))
     tangent_in = (
-        zeros(t_mean, mean), gram_tangent(root, t_root),
-        zeros(t_mean_next, mean_next), gram_tangent(root_next, t_root_next),
+        zeros(t_mean, mean), root_tangent_to_cov(root, t_root),
+        zeros(t_mean_next, mean_next), root_tangent_to_cov(root_next, t_root_next),
     )  # fmt: skip
     _, (d_mean_s, d_cov_s, d_cross) = eqx.filter_jvp(
         reference, (model, u, *primal_in), (t_model, t_u, *tangent_in)
@@ -126,8 +120,7 @@ def _square_root_step_jvp(primals, tangents):
 
 def square_root_backward_pass(model, result: FilterResult, inputs, k0=0) -> SmootherResult:
     """Eqs (1)-(4) of the module docstring for k = T-2, ..., 0, k counted from ``k0``."""
-    steps = k0 + jnp.arange(result.mean.shape[0] - 1)
-    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    steps, u_seq = backward_steps(result.mean.shape[0], inputs, k0)
     roots = filtered_square_roots(result)
 
     def backward(carry, args):
@@ -174,9 +167,9 @@ def parallel_square_root_pass(model, means, roots, inputs, k0):
     :func:`combine_square_roots`; differentiated as the covariance-form parallel smoother
     (:func:`parallel_covariance_pass`)."""
     T, n = means.shape
-    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    steps, u_seq = backward_steps(T, inputs, k0)
     factors = lambda k, u, mean, root: joint_factors(model, k, u, mean, root)
-    pred_means, gains, N = jax.vmap(factors)(k0 + jnp.arange(T - 1), u_seq, means[:-1], roots[:-1])
+    pred_means, gains, N = jax.vmap(factors)(steps, u_seq, means[:-1], roots[:-1])
     g = means[:-1] - jnp.einsum("kij,kj->ki", gains, pred_means)
     last = SquareRootElement(jnp.zeros((1, n, n), g.dtype), means[-1:], roots[-1:])
     elements = jax.tree.map(
@@ -191,13 +184,12 @@ def parallel_covariance_pass(model, means, covs, inputs, k0):
     """The covariance-form parallel smoother (:func:`~jaxest.smoothers.parallel.parallel_rts_smooth`)
     on the same filtered moments, x(k+1|k) = f(x(k|k)), P(k+1|k) = F P(k|k) F^T + G Q G^T."""
     T = means.shape[0]
-    u_seq = None if inputs is None else jax.tree.map(lambda a: a[:-1], inputs)
+    steps, u_seq = backward_steps(T, inputs, k0)
 
     def predicted(k, u, mean, cov):
         pred_mean, F, G, Q = model.transition(mean, u, k)
         return pred_mean, predicted_cov(cov, F, G, Q)
 
-    steps = k0 + jnp.arange(T - 1)
     pred_means, pred_covs = jax.vmap(predicted)(steps, u_seq, means[:-1], covs[:-1])
     moments = FilterResult(
         final_state=None, mean=means, cov=covs,
@@ -216,8 +208,7 @@ def _parallel_square_root_pass_jvp(primals, tangents):
     out = parallel_square_root_pass(*primals)
     zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     grams = roots @ jnp.swapaxes(roots, -1, -2)
-    d_grams = zeros(t_roots, roots) @ jnp.swapaxes(roots, -1, -2)
-    d_grams = d_grams + jnp.swapaxes(d_grams, -1, -2)
+    d_grams = root_tangent_to_cov(roots, t_roots)
     reference = lambda model, means, covs, inputs: parallel_covariance_pass(
         model, means, covs, inputs, k0
     )

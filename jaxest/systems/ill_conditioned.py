@@ -10,6 +10,7 @@ smallest eigenvalue, of order d^2, lies (:func:`smallest_variance_ratio`).
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -86,11 +87,7 @@ def smallest_variance_ratio(result, d: float) -> float:
     filter keeps (SVD or Cholesky factor), which resolves variances far below eps ||P+||; from
     P+ itself for the filters that keep P."""
     exact, v = smallest_variance(d, result.cov.dtype)
-    factor = result.factor
-    if isinstance(factor, je.SVDFactor):
-        rows = np.asarray(factor.D[0], np.float64)[:, None] * np.asarray(factor.U[0], np.float64).T
-    elif isinstance(factor, je.CholeskyFactor):
-        rows = np.asarray(factor.chol[0], np.float64).T
-    else:
+    if result.factor is None or not result.factor.is_square_root:
         return float(v @ np.asarray(result.cov[0], np.float64) @ v / exact)
-    return float(np.sum((rows @ v) ** 2) / exact)
+    factor = jax.tree.map(lambda a: np.asarray(a[0], np.float64), result.factor)
+    return float(np.sum((factor.square_root.T @ v) ** 2) / exact)
