@@ -4,19 +4,32 @@ For x_{k+1} = F x_k + B u_k + w_k, y_k = H x_k + D u_k + v_k (G = I), x_0 ~ N(m0
 iteration runs the Kalman filter and RTS smoother at the current parameters (E-step) and
 maximises the expected complete-data log-likelihood in closed form (M-step). With the smoothed
 moments x(k|T), P(k|T) and the lag-one cross covariances P(k+1,k|T) = P(k+1|T) E_k^T (E_k the RTS
-gain; :attr:`~jaxest.SmootherResult.cross_cov`), and z_k = [x_k; u_k],
+gain; :attr:`~jaxest.SmootherResult.cross_cov`), and z_k = [x_k; u_k], there are two linear
+regressions t_k = W z_k + noise: the dynamics (t_k = x_{k+1}, k = 0..T-2, W = [F, B], noise
+covariance Sigma = Q, N = T-1 terms) and the measurements (t_k = y_k, k = 0..T-1, W = [H, D],
+Sigma = R, N = T). With the sums S_ab = sum_k E[a_k b_k^T] over the smoothed distribution, the
+maximiser over the free columns a of W (the held ones b keep their values) and over Sigma is
 
-    S_zz = sum_k E[z_k z_k^T],  S_zt = sum_k E[z_k t_k^T],  S_tt = sum_k E[t_k t_k^T]        (1)
+    W_a = (S_ta - W_b S_ba) S_aa^-1,   Sigma = E_W / N,
+    E_W = sum_k E[(t_k - W z_k)(t_k - W z_k)^T].                                             (1)
 
-for the dynamics (t_k = x_{k+1}, k = 0..T-2) and for the measurements (t_k = y_k, k = 0..T-1).
-Each is a linear regression t = W z + noise with W = [F, B] (or [H, D]):
+W_a does not depend on Sigma (all rows share the regressors), so (1) maximises over (W_a, Sigma)
+jointly; with W held it maximises over Sigma alone, and with Sigma held over W_a alone (its
+minimiser is Sigma-free). The textbook form, E_W = S_tt - W S_zt - S_zt^T W^T + W S_zz W^T, is
+a difference of sums the size of the signal whose result is the size of the noise: in float32,
+with Q and R 1e-6 of the prior's variance, it lost Q's digits and EM went NaN within 30-110
+iterations. So both are computed from the residuals of the current W0 (the same maximiser in
+exact arithmetic, a step of iterative refinement in rounded), with E[.] and C for the smoothed
+means and covariances, C_zz,k = blockdiag(P(k|T), 0), and for the dynamics C_tz,k =
+[P(k+1,k|T), 0], C_tt,k = P(k+1|T) (for the measurements both zero):
 
-    W_a = (S_ta - W_b S_ba) S_aa^-1   (a: the free blocks of W, b: the held ones),
-    Sigma = (S_tt - W S_zt - S_zt^T W^T + W S_zz W^T) / N,                                  (2)
+    r_k = E[t_k] - W0 E[z_k],
+    G = sum_k E[(t_k - W0 z_k) z_k^T] = sum_k (r_k E[z_k]^T + C_tz,k - W0 C_zz,k),
+    W_a = W0_a + G_a S_aa^-1,                                                                 (2)
+    E_W = sum_k [e_k e_k^T + C_tt,k - W C_tz,k^T - C_tz,k W^T + W C_zz,k W^T],
+    e_k = E[t_k] - W E[z_k].                                                                  (3)
 
-Sigma = Q (N = T-1) or R (N = T). W_a does not depend on Sigma (all rows share the regressors),
-so (2) maximises over (W_a, Sigma) jointly; with W held it maximises over Sigma alone, and with
-Sigma held over W_a alone (its minimiser is Sigma-free). The prior: m0 = x(0|T),
+(2) is (1) since G_a = S_ta - W0_a S_aa - W0_b S_ba. The prior: m0 = x(0|T),
 P0 = P(0|T) + (x(0|T) - m0)(x(0|T) - m0)^T. Every step is a maximisation of the expected
 complete-data log-likelihood over some parameters with the others held, so the log-likelihood
 does not decrease from one iteration to the next (Dempster, Laird & Rubin 1977, Theorem 1).
@@ -24,9 +37,16 @@ does not decrease from one iteration to the next (Dempster, Laird & Rubin 1977, 
 Status. Each iteration's flags (:data:`EMStatus`, ``EMResult.status``) gather what can go wrong
 under ``jit`` without an exception: the E-step filter's and smoother's own flags, a fitted Q, R
 or P0 that is not positive definite (``DEGENERATE_COVARIANCE``: with too few steps for the
-parameters fitted, (2)'s Sigma is singular, and the next E-step turns it into NaN), and a
+parameters fitted, (1)'s Sigma is singular, and the next E-step turns it into NaN), and a
 log-likelihood below the previous iteration's by more than sqrt(eps) of their size
 (``LOGLIK_DECREASED``), which the theorem rules out in exact arithmetic.
+
+Precision. With (2)-(3), float32 fits of random 4-state systems with Q and R 1e-6 of the
+prior's variance ended within 0.06 nats of float64's, where the textbook form went NaN in 19 of
+20 (flagged). At 1e-8 the covariance-form E-step (``KalmanFilter`` and the RTS smoother) loses
+P(k|k) in float32 from the first iteration (flagged ``NOT_POSITIVE_DEFINITE``);
+``square_root=True`` runs it on Cholesky factors, as the parallel E-step always does
+(docs/robustness.md, "EM in float32", has the measurements).
 """
 
 from __future__ import annotations
@@ -46,10 +66,11 @@ from jaxest._checks import (
     check_positive_int,
 )
 from jaxest._priors import Gaussian
-from jaxest._run import raise_if_failed, run
+from jaxest._run import SaveAt, raise_if_failed, run
 from jaxest._status import finite_status, status_where
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.filters.parallel import ParallelKalmanFilter, ParallelStatus
+from jaxest.filters.sqrt_kf import SquareRootKF
 from jaxest.linalg import (
     after,
     cho_solve_lower,
@@ -68,15 +89,17 @@ EMStatus = ParallelStatus.extend(
     "EMStatus",
     DEGENERATE_COVARIANCE=(
         8,
-        "a fitted covariance (Q, R or the prior's P0) is not positive definite or not finite: "
-        "the data do not determine it (too few steps for the parameters fitted, or a state the "
-        "measurements do not see); hold it in fixed, fit fewer parameters or give more data",
+        "a fitted covariance (Q, R or the prior's P0) is singular to working precision or not "
+        "finite: the data do not determine it (too few steps for the parameters fitted, or a "
+        "state the measurements do not see); hold it in fixed, fit fewer parameters or give "
+        "more data",
     ),
     LOGLIK_DECREASED=(
         16,
         "the log-likelihood fell from one EM iteration to the next by more than sqrt(eps) of "
         "its size, which EM rules out in exact arithmetic: the E-step lost precision (use "
-        "float64) or a fitted covariance is nearly singular (see DEGENERATE_COVARIANCE)",
+        "square_root=True or float64) or a fitted covariance is nearly singular (see "
+        "DEGENERATE_COVARIANCE)",
     ),
 )
 """``fit_em``'s status flags: the E-step filter's and smoother's (the core's and the parallel
@@ -120,60 +143,85 @@ class Moments(eqx.Module):
 
 
 def kalman_smooth(
-    model, ys, *, prior, inputs=None, parallel: bool
+    model, ys, *, prior, inputs=None, parallel: bool, square_root: bool = False
 ) -> tuple[SmootherResult, Float[Array, ""]]:
     """x(k|T), P(k|T) (a :class:`~jaxest.SmootherResult`) and log p(y) of a linear-Gaussian
-    model: ``KalmanFilter`` and ``rts_smooth``, or with ``parallel`` the square-root
-    ``ParallelKalmanFilter`` and ``rts_smooth(..., parallel=True)``. The E-step below, and each
-    iteration of :func:`~jaxest.iterated_smooth`."""
-    filt = ParallelKalmanFilter() if parallel else KalmanFilter()
-    filtered = run(filt, model, ys, prior=prior, inputs=inputs, parallel=parallel)
-    return rts_smooth(model, filtered, inputs=inputs, parallel=parallel), filtered.loglik
+    model: ``KalmanFilter`` and ``rts_smooth``; with ``square_root``, ``SquareRootKF`` and
+    ``rts_smooth(..., square_root=True)`` on its Cholesky factors; with ``parallel``, the
+    square-root ``ParallelKalmanFilter`` and the parallel smoother on its factors (in float32 the
+    covariance-form parallel smoother left EM fits 2-4 nats short with status OK, and it is no
+    faster). The E-step below, and each iteration of :func:`~jaxest.iterated_smooth`."""
+    square_root = square_root or parallel
+    filt = ParallelKalmanFilter() if parallel else SquareRootKF() if square_root else KalmanFilter()
+    save = SaveAt(fields=filt.default_fields + ("factor",)) if square_root else None
+    filtered = run(filt, model, ys, prior=prior, inputs=inputs, parallel=parallel, save=save)
+    smoothed = rts_smooth(
+        model, filtered, inputs=inputs, parallel=parallel, square_root=square_root
+    )
+    return smoothed, filtered.loglik
 
 
-def e_step(model, prior, ys, inputs, parallel: bool) -> Moments:
-    """Filter and RTS-smooth at the current parameters (in parallel form if ``parallel``)."""
-    smoothed, loglik = kalman_smooth(model, ys, prior=prior, inputs=inputs, parallel=parallel)
+def e_step(model, prior, ys, inputs, parallel: bool, square_root: bool) -> Moments:
+    """Filter and RTS-smooth at the current parameters (``kalman_smooth``)."""
+    smoothed, loglik = kalman_smooth(
+        model, ys, prior=prior, inputs=inputs, parallel=parallel, square_root=square_root
+    )
     status = jnp.bitwise_or.reduce(smoothed.status, axis=-1)  # the filter's included
     return Moments(smoothed.mean, smoothed.cov, smoothed.cross_cov, loglik, status)
 
 
-def regression_stats(mo: Moments, ys, inputs):
-    """Eq (1) for the dynamics and for the measurements: (S_zz, S_zt, S_tt, N) each."""
+class Regression(eqx.Module):
+    """One regression t_k = W z_k + noise of the module docstring, as the E-step knows it: the
+    smoothed means of z_k and t_k, and the sums over k of their smoothed covariances."""
+
+    z: Float[Array, "N d"]
+    t: Float[Array, "N m"]
+    C_zz: Float[Array, "d d"]
+    C_tz: Float[Array, "m d"]
+    C_tt: Float[Array, "m m"]
+
+
+def regressions(mo: Moments, ys, inputs) -> tuple[Regression, Regression]:
+    """The dynamics' and the measurements' :class:`Regression` (module docstring)."""
     x, P, T = mo.mean, mo.cov, mo.mean.shape[0]
     u = jnp.zeros((T, 0), x.dtype) if inputs is None else inputs
     z = jnp.concatenate([x, u], axis=1)
-    n = x.shape[1]
+    n, d = x.shape[1], z.shape[1]
 
-    def zz(index):
-        S = z[index].T @ z[index]
-        return S.at[:n, :n].add(jnp.sum(P[index], axis=0))
+    def states_block(C, rows):  # C in the leading rows and the state columns, zero elsewhere
+        return jnp.zeros((rows, d), x.dtype).at[: C.shape[0], :n].set(C)
 
-    head = slice(0, T - 1)
-    S_zx = z[head].T @ x[1:]
-    dynamics = (zz(head), S_zx.at[:n].add(jnp.sum(mo.cross, axis=0).T),
-                x[1:].T @ x[1:] + jnp.sum(P[1:], axis=0), T - 1)  # fmt: skip
-    emission = (zz(slice(0, T)), z.T @ ys, ys.T @ ys, T)
+    C_xx_head, C_xx_tail = jnp.sum(P[:-1], axis=0), jnp.sum(P[1:], axis=0)
+    C_next_x = jnp.sum(mo.cross, axis=0)
+    dynamics = Regression(z[:-1], x[1:], states_block(C_xx_head, d),
+                          states_block(C_next_x, n), C_xx_tail)  # fmt: skip
+    m = ys.shape[1]
+    emission = Regression(z, ys, states_block(C_xx_head + P[-1], d),
+                          jnp.zeros((m, d), x.dtype), jnp.zeros((m, m), x.dtype))  # fmt: skip
     return dynamics, emission
 
 
-def regress(stats, W, cov, free: np.ndarray, fit_cov: bool):
-    """Eq (2): the free columns ``free`` of W, then the noise covariance (if ``fit_cov``)."""
-    S_zz, S_zt, S_tt, N = stats
-    held = np.setdiff1d(np.arange(W.shape[1]), free)
+def regress(reg: Regression, W, cov, free: np.ndarray, fit_cov: bool):
+    """Eq (2): the free columns ``free`` of W, then eq (3)'s noise covariance (if ``fit_cov``),
+    both from the residuals of the current W."""
+    residual = reg.t - reg.z @ W.T
     if free.size:
-        rhs = S_zt[free] - S_zz[np.ix_(free, held)] @ W[:, held].T
-        W = W.at[:, free].set(cho_solve_lower(cholesky(S_zz[np.ix_(free, free)]), rhs).T)
+        z_a = reg.z[:, free]
+        S_aa = z_a.T @ z_a + reg.C_zz[np.ix_(free, free)]
+        G_a = residual.T @ z_a + reg.C_tz[:, free] - W @ reg.C_zz[:, free]
+        W = W.at[:, free].add(cho_solve_lower(cholesky(S_aa), G_a.T).T)
+        residual = reg.t - reg.z @ W.T
     if fit_cov:
-        cross = W @ S_zt
-        cov = symmetrize(S_tt - cross - cross.T + W @ S_zz @ W.T) / N
+        cross = W @ reg.C_tz.T
+        E_W = residual.T @ residual + reg.C_tt - cross - cross.T + W @ reg.C_zz @ W.T
+        cov = symmetrize(E_W) / reg.z.shape[0]
     return W, cov
 
 
 def m_step(model: LinearGaussian, prior: Gaussian, mo: Moments, ys, inputs, fixed: frozenset):
-    """The closed-form maximisation, eq (2), holding the parameters in ``fixed``."""
+    """The closed-form maximisation, eqs (2) and (3), holding the parameters in ``fixed``."""
     n, p = model.F.shape[0], 0 if inputs is None else inputs.shape[1]
-    dynamics, emission = regression_stats(mo, ys, inputs)
+    dynamics, emission = regressions(mo, ys, inputs)
 
     def columns(state_name, input_name):
         state = [] if state_name in fixed else list(range(n))
@@ -202,15 +250,22 @@ def m_step(model: LinearGaussian, prior: Gaussian, mo: Moments, ys, inputs, fixe
 
 def fitted_status(model: LinearGaussian, prior: Gaussian, fixed: frozenset) -> Int[Array, ""]:
     """``NONFINITE`` where a parameter is not finite, ``DEGENERATE_COVARIANCE`` where a fitted
-    covariance (Q, R, P0; those held in ``fixed`` are the caller's) has no Cholesky factor.
-    The factorisations run one after the other (:func:`~jaxest.linalg.after`: above 8 states
-    they are LAPACK calls, and two at once can deadlock jaxlib 0.10 on the CPU)."""
+    covariance C (Q, R, P0; those held in ``fixed`` are the caller's) is singular as far as its
+    dtype can tell: a pivot L_ii^2 of its Cholesky factor (component i's variance given the
+    components before it) below sqrt(eps) C_ii, or not finite. A covariance singular in exact
+    arithmetic comes out of (3) with pivots of 0.8-2.2 eps C_ii or none (20 fits of
+    ``tests/test_em.py``'s degenerate problem, float64), and which of the two is rounding's
+    choice; the fits of well-posed problems there had 0.19-1.0. The factorisations run one
+    after the other (:func:`~jaxest.linalg.after`: above 8 states they are LAPACK calls, and
+    two at once can deadlock jaxlib 0.10 on the CPU)."""
     fitted = {"Q": model.Q, "R": model.R, "prior.cov": prior.cov}
-    factors = []
+    factors, degenerate = [], jnp.zeros((), bool)
     for name, cov in fitted.items():
         if name not in fixed:
             factors.append(cholesky(after(cov, factors)))
-    degenerate = bool(factors) and finite_status(*factors) != 0
+            pivots = jnp.diagonal(factors[-1]) ** 2 / jnp.diagonal(cov)
+            tolerance = jnp.sqrt(jnp.finfo(cov.dtype).eps)
+            degenerate |= ~jnp.all(pivots >= tolerance)  # False for NaN: degenerate
     return finite_status(*jax.tree.leaves((model, prior))) | status_where(
         degenerate, EMStatus.DEGENERATE_COVARIANCE
     )
@@ -226,10 +281,10 @@ def decrease_status(logliks: Float[Array, " num_iters"]) -> Int[Array, " num_ite
 
 
 @eqx.filter_jit
-def _fit_em(model, prior, ys, inputs, num_iters: int, fixed: frozenset, parallel: bool):
+def _fit_em(model, prior, ys, inputs, num_iters: int, fixed: frozenset, parallel, square_root):
     def body(carry, _):
         model, prior = carry
-        moments = e_step(model, prior, ys, inputs, parallel)
+        moments = e_step(model, prior, ys, inputs, parallel, square_root)
         model, prior = m_step(model, prior, moments, ys, inputs, fixed)
         status = moments.status | fitted_status(model, prior, fixed)
         return (model, prior), (moments.loglik, status)
@@ -248,6 +303,7 @@ def fit_em(
     fixed=(),
     inputs=None,
     parallel: bool = False,
+    square_root: bool = False,
     throw: bool = False,
 ) -> EMResult:
     """Fit F, B, Q, H, D, R and the prior of a linear-Gaussian model by EM (module docstring).
@@ -261,6 +317,10 @@ def fit_em(
         fixed: names from :data:`PARAMETERS` held at their initial values.
         inputs: known inputs u_k, shape (T, p), or ``None``.
         parallel: E-step by the parallel filter and smoother instead of the sequential ones.
+        square_root: the sequential E-step on Cholesky factors (``SquareRootKF`` and
+            ``rts_smooth(..., square_root=True)``), for float32 where Q and R are far below the
+            prior's spread (module docstring); 2.1-2.8 times the time. The parallel E-step
+            always runs on factors.
         throw: raise (``eqx.error_if``, also under ``jit``) if an iteration's status is not
             OK, with what each flag means.
 
@@ -271,7 +331,7 @@ def fit_em(
     _check(model, ys, prior, num_iters, fixed, inputs, parallel)
     ys = jnp.asarray(ys)
     inputs = None if inputs is None else jnp.asarray(inputs)
-    result = _fit_em(model, prior, ys, inputs, num_iters, frozenset(fixed), parallel)
+    result = _fit_em(model, prior, ys, inputs, num_iters, frozenset(fixed), parallel, square_root)
     return raise_if_failed(result) if throw else result
 
 

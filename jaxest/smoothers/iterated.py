@@ -10,8 +10,9 @@ trajectory xbar_0..xbar_{T-1},
 
 with G_k = G(xbar_k, u_k): a time-varying :class:`~jaxest.LinearGaussian` whose offsets are its
 input matrices B_k, D_k for the input 1. The Kalman filter and RTS smoother of (1) --
-:class:`~jaxest.ParallelKalmanFilter` and ``rts_smooth(..., parallel=True)``, O(log T) depth,
-or the sequential ones -- give the next nominal trajectory, x(k|T) of (1).
+:class:`~jaxest.ParallelKalmanFilter` and ``rts_smooth(..., parallel=True, square_root=True)``
+on its factors, O(log T) depth, or the sequential ones -- give the next nominal trajectory,
+x(k|T) of (1) (:func:`jaxest.em.kalman_smooth`).
 
 With G independent of x and G Q G^T, R, P0 positive definite, the smoothed means of (1) minimise
 the quadratic that agrees with the negative log-posterior
