@@ -36,7 +36,7 @@ does not decrease from one iteration to the next (Dempster, Laird & Rubin 1977, 
 
 Status. Each iteration's flags (:data:`EMStatus`, ``EMResult.status``) gather what can go wrong
 under ``jit`` without an exception: the E-step filter's and smoother's own flags, a fitted Q, R
-or P0 that is not positive definite (``DEGENERATE_COVARIANCE``: with too few steps for the
+or P0 singular to working precision (``DEGENERATE_COVARIANCE``: with too few steps for the
 parameters fitted, (1)'s Sigma is singular, and the next E-step turns it into NaN), and a
 log-likelihood below the previous iteration's by more than sqrt(eps) of their size
 (``LOGLIK_DECREASED``), which the theorem rules out in exact arithmetic.
@@ -328,14 +328,14 @@ def fit_em(
     dynamax's ``fit_em`` reports it), non-decreasing in i; ``status[i]`` the iteration's
     :data:`EMStatus` flags (``result.ok``: all OK).
     """
-    _check(model, ys, prior, num_iters, fixed, inputs, parallel)
+    _check(model, ys, prior, num_iters, fixed, inputs, parallel, square_root)
     ys = jnp.asarray(ys)
     inputs = None if inputs is None else jnp.asarray(inputs)
     result = _fit_em(model, prior, ys, inputs, num_iters, frozenset(fixed), parallel, square_root)
     return raise_if_failed(result) if throw else result
 
 
-def _check(model, ys, prior, num_iters, fixed, inputs, parallel):
+def _check(model, ys, prior, num_iters, fixed, inputs, parallel, square_root):
     if not isinstance(model, LinearGaussian):
         raise ValueError(f"model: fit_em needs a jaxest.LinearGaussian, got {type(model).__name__}")
     if model.G is not None:
@@ -355,8 +355,9 @@ def _check(model, ys, prior, num_iters, fixed, inputs, parallel):
         raise ValueError(f"fixed: expected names from {PARAMETERS}, got {fixed!r}")
     check_positive_int("num_iters", num_iters)
     check_gaussian_prior(prior, model.F.shape[-1])
-    # the parallel E-step's square-root filter factors Q: a singular one gave NaN (status 13)
-    check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel)
+    # the square-root filters of the parallel and square_root E-steps factor Q: a singular one
+    # gave NaN (status 13)
+    check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel or square_root)
     check_complete(ys, "fit_em needs complete measurements")
     dynamics = ({"F", "Q"} | ({"B"} if model.B is not None else set())) - set(fixed)
     if dynamics and np.shape(ys)[0] < 2:

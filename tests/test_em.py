@@ -241,10 +241,12 @@ def test_errors_name_the_argument():
         je.fit_em(init, ys[:1], prior=prior, num_iters=2)
     with pytest.raises(ValueError, match="^num_iters: must be a positive integer, got True"):
         je.fit_em(init, ys, prior=prior, num_iters=True)
-    # the parallel E-step's square-root filter factors Q: a singular one gave NaN (status 13)
+    # the square-root filters (parallel, square_root) factor Q: a singular one gave NaN (status 13)
     singular = eqx.tree_at(lambda m: m.Q, init, jnp.diag(jnp.asarray([1.0, 1.0, 0.0])))
     with pytest.raises(ValueError, match="^model.Q: must be positive definite"):
         je.fit_em(singular, ys, prior=prior, num_iters=2, parallel=True)
+    with pytest.raises(ValueError, match="^model.Q: must be positive definite"):
+        je.fit_em(singular, ys, prior=prior, num_iters=2, square_root=True)
     # an integer F was fitted as integers ([[0, 0], ...] with ok=True); an integer Q failed in
     # the scan
     for name in ("F", "Q"):
