@@ -40,10 +40,6 @@ E_STEPS = {
 }
 
 
-def cast(tree, dtype):
-    return jax.tree.map(lambda a: a.astype(dtype), tree)
-
-
 def problem(seed: int, args):
     """The data, the initial model and the prior of one system (module docstring)."""
     rng = np.random.default_rng(seed)
@@ -65,7 +61,7 @@ def fitter(args, parallel, square_root):
 def score(result, ys) -> float:
     """log p(y) of the fitted model and prior, by the float64 Kalman filter; NaN where they are
     not a model (not finite, or a covariance not positive definite: ``run`` refuses them)."""
-    model, prior = cast(result.model, jnp.float64), cast(result.prior, jnp.float64)
+    model, prior = je.astype(result.model, jnp.float64), je.astype(result.prior, jnp.float64)
     try:
         return float(je.run(je.KalmanFilter(), model, ys, prior=prior).loglik)
     except ValueError:
@@ -102,7 +98,7 @@ def main(argv=None):
         ys, init, prior = problem(seed, args)
         ref = reference(init, ys, prior)
         row = {"seed": seed, "reference_status": je.EMStatus.describe(ref.any_status)}
-        single = cast((init, ys, prior), jnp.float32)
+        single = je.astype((init, ys, prior), jnp.float32)
         for name, fit in fits.items():
             result = fit(*single)
             row[name] = {
@@ -113,7 +109,7 @@ def main(argv=None):
     summary = {}
     ys, init, prior = problem(0, args)
     for dtype in (jnp.float32, jnp.float64):
-        data = cast((init, ys, prior), dtype)
+        data = je.astype((init, ys, prior), dtype)
         base = best_time(fits["covariance"], *data)
         for name, fit in fits.items():
             entry = summary.setdefault(name, {})

@@ -29,7 +29,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 from parallel_accuracy import in_standard_deviations  # noqa: E402
 
@@ -50,10 +49,6 @@ def records(data_dir) -> dict[str, flight_data.FlightData]:
     return {"hfb320": flight_data.load_hfb320(data_dir), **attas}
 
 
-def cast(tree, dtype):
-    return jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, tree)
-
-
 def largest_condition_number(covs) -> float:
     """max over steps of :func:`~jaxest.setmembership.ellipsoid.condition_number` of the
     covariances ``covs`` (T, n, n), in float64: infinite where one is singular or indefinite."""
@@ -66,7 +61,7 @@ def float32_errors(Filter, data: flight_data.FlightData) -> dict:
     reference, model, inputs = study.reconstruct(
         data, study.sim.INPUT_STD, study.REAL_OUTPUT_STD, Filter()
     )
-    single = lambda tree: cast(tree, jnp.float32)
+    single = lambda tree: je.astype(tree, jnp.float32)
     model, prior = single(model), single(study.real_prior(data))
     scaled_model, scaled_prior = je.scale_state(model, prior)  # in float32
     # (model, prior, what maps the run's means back to the state's units)

@@ -106,8 +106,7 @@ def rows_at(scale: float, T: int, detail: bool) -> list[dict]:
     reference = je.run(je.KalmanFilter(), model64, ys64, prior=prior64, save=save)
     rows = []
     for dtype in ("float32", "float64"):
-        cast = lambda tree, dtype=dtype: jax.tree.map(lambda a: a.astype(dtype), tree)
-        model, prior, ys = cast(model64), cast(prior64), cast(ys64)
+        model, prior, ys = je.astype((model64, prior64, ys64), dtype)
         filters = {"parallel_sqrt": je.ParallelKalmanFilter(),
                    "parallel_standard": je.ParallelKalmanFilter(square_root=False)}  # fmt: skip
         if detail and dtype == "float32":

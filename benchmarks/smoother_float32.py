@@ -94,8 +94,7 @@ def one_system(seed: int, args) -> dict:
     model = je.LinearGaussian(*map(jnp.asarray, (F, H, Q, R)))
     prior = je.Gaussian(jnp.zeros(args.states), args.p0 * jnp.eye(args.states))
     ys = je.simulate(model, prior, args.steps, jax.random.key(seed)).y
-    single = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32), tree)
-    model, prior, ys = single(model), single(prior), single(ys)
+    model, prior, ys = je.astype((model, prior, ys), jnp.float32)
     rounded = [np.asarray(a, np.float64) for a in (model.F, model.H, model.Q, model.R)]
     means, covs = numpy_smoother(*rounded, np.zeros(args.states), args.p0 * np.eye(args.states),
                                  np.asarray(ys, np.float64))  # fmt: skip

@@ -63,6 +63,7 @@ from jaxest.filters import (
     resample as resample,
     steady_state_gain as steady_state_gain,
 )
+from jaxest.linalg import astype as astype
 from jaxest.models import (
     AbstractGaussianModel as AbstractGaussianModel,
     LinearGaussian as LinearGaussian,
@@ -131,7 +132,7 @@ __all__ = [
     "RiccatiStatus", "SVDEKF", "SVDFactor", "SaveAt", "ScaledState", "Simulation",
     "SmootherResult", "SquareRootKF", "Status", "StatusFlag", "SteadyStateGain",
     "SteadyStateKalmanFilter", "StepOutput", "UKF", "WienerSmoother", "arma_innovation_model",
-    "check_gaussian_arguments", "finite_status", "fit", "fit_em", "iterated_smooth",
+    "astype", "check_gaussian_arguments", "finite_status", "fit", "fit_em", "iterated_smooth",
     "log_variance_standard_errors", "log_variances", "lqr_gain", "monte_carlo", "neg_loglik",
     "raise_if_failed", "resample", "rts_smooth", "run", "scale_state", "sigma_point_rts_smooth",
     "simulate", "solve_care", "solve_dare", "solve_filter_care", "solve_filter_dare",

@@ -63,6 +63,19 @@ def _traced_at_highest(fn, keep_callers_choice: bool):
     return traced_at_working_precision
 
 
+def astype(tree, dtype):
+    """``tree`` (a model, a prior, data, a result, or a tuple of them) with every floating-point
+    array cast to ``dtype``; other leaves (integer and boolean arrays, Python numbers,
+    functions) as they are. ``je.astype((model, prior, ys), jnp.float32)`` runs a study in
+    float32; ``jnp.float64`` is float32 unless ``jax_enable_x64`` is on."""
+
+    def cast(leaf):
+        floating = hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating)
+        return jnp.asarray(leaf, dtype) if floating else leaf
+
+    return jax.tree.map(cast, tree)
+
+
 def symmetrize(P):
     """(P + P^T) / 2 over the last two axes."""
     return 0.5 * (P + jnp.swapaxes(P, -1, -2))

@@ -190,7 +190,7 @@ def test_dtypes_that_do_not_fit_are_named():
             je.run(estimator, model, ys, prior=integer_cov)
         with pytest.raises(ValueError, match="^ys: must be real"):
             je.run(estimator, model, ys.astype(jnp.complex128), prior=prior)
-    single = jax.tree.map(lambda a: a.astype(jnp.float32), (model, ys, prior))
+    single = je.astype((model, ys, prior), jnp.float32)
     assert bool(je.run(KalmanFilter(), single[0], single[1], prior=single[2]).ok)
 
 

@@ -153,8 +153,7 @@ def test_status_under_jit_and_vmap(dtype):
     """A batch of a sound and a degenerate fit under ``jit(vmap(...))``: each run keeps its
     own flags, and the sound run's results equal its fit alone."""
     _, ys, _, init, init_prior = system(0, 2, 2, 40)
-    cast = lambda tree: jax.tree.map(lambda a: a.astype(dtype), tree)
-    init, init_prior, ys = cast(init), cast(init_prior), ys.astype(dtype)
+    init, init_prior, ys = je.astype(init, dtype), je.astype(init_prior, dtype), ys.astype(dtype)
     # the second run: every measurement equal, so the fitted R collapses to 0
     batch = jnp.stack([ys, jnp.ones_like(ys)])
     fits = jax.jit(jax.vmap(lambda y: je.fit_em(init, y, prior=init_prior, num_iters=4)))(batch)
@@ -208,16 +207,16 @@ def test_float32_fit_matches_float64_where_noise_is_far_below_the_prior(
     ys, init, prior = small_noise_problem(seed, q)
     fit = lambda *args, **kw: je.fit_em(*args, num_iters=60, parallel=parallel, **kw)
     reference = fit(init, ys, prior=prior)
-    to32 = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32), tree)
-    single = fit(to32(init), to32(ys), prior=to32(prior), square_root=square_root)
+    init32, ys32, prior32 = je.astype((init, ys, prior), jnp.float32)
+    single = fit(init32, ys32, prior=prior32, square_root=square_root)
     assert bool(reference.ok) and bool(single.ok), je.EMStatus.describe(single.any_status)
-    to64 = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float64), tree)
-    score = lambda res: je.run(je.KalmanFilter(), to64(res.model), ys, prior=to64(res.prior)).loglik
+    score = lambda res: je.run(je.KalmanFilter(), *je.astype((res.model, ys), jnp.float64),
+                               prior=je.astype(res.prior, jnp.float64)).loglik  # fmt: skip
     assert abs(float(score(single) - score(reference))) < 0.05
     if square_root:
         root = fit(init, ys, prior=prior, square_root=True)
         np.testing.assert_allclose(root.logliks, reference.logliks, rtol=1e-8)
-        covariance_form = fit(to32(init), to32(ys), prior=to32(prior))
+        covariance_form = fit(init32, ys32, prior=prior32)
         assert int(covariance_form.status[0]) & je.EMStatus.NOT_POSITIVE_DEFINITE
 
 

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import jaxest as je
 from jaxest import EKF, Gaussian, run
 from jaxest.studies import svd_ekf
 from jaxest.systems import flight_wind
@@ -128,7 +129,7 @@ def test_wind_step_is_tuned_by_gradient_through_the_ekf(point, dtype):
         @jax.jit
         def loglik(log_step):
             model, _ = flight_wind.with_wind(plain, names, jnp.exp(log_step))
-            model = jax.tree.map(lambda a: a.astype(dtype) if eqx.is_inexact_array(a) else a, model)
+            model = je.astype(model, dtype)
             return run(EKF(), model, ys, inputs=inputs, prior=prior).loglik
 
         log_steps = jnp.log(jnp.array([0.02, 0.1], dtype))

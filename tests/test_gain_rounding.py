@@ -93,7 +93,6 @@ def test_states_in_very_different_units_are_not_flagged_where_float32_is_right()
     (and flagged 4 of 100 simulated flights of the svd-ekf study, each as right as the others);
     measured along each direction it stays below 1e-5."""
     scale = np.array([1e4, 1.0, 1e-4, 1e-2])
-    f32 = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32), tree)
     for seed in range(3):
         F, H, Q, R = random_system(np.random.default_rng(seed), 4, 3)
         F, H, Q = scale[:, None] * F / scale, H / scale, scale[:, None] * Q * scale
@@ -101,7 +100,8 @@ def test_states_in_very_different_units_are_not_flagged_where_float32_is_right()
         prior = je.Gaussian(jnp.zeros(4), jnp.diag(jnp.asarray(scale**2)))
         ys = je.simulate(truth, prior, 50, jax.random.key(seed)).y
         exact = je.run(je.ImprovedSVDKF(), truth, ys, prior=prior)
-        result = je.run(je.ImprovedSVDKF(), f32(truth), f32(ys), prior=f32(prior))
+        truth32, ys32, prior32 = je.astype((truth, ys, prior), jnp.float32)
+        result = je.run(je.ImprovedSVDKF(), truth32, ys32, prior=prior32)
         assert int(result.any_status) == 0
         std = jnp.sqrt(jnp.diagonal(exact.cov, axis1=1, axis2=2))
         assert float(jnp.max(jnp.abs(result.mean - exact.mean) / std)) < 1e-2

@@ -118,7 +118,7 @@ def test_jit_vmap_grad_in_float64_and_float32():
     batch = eqx.filter_jit(eqx.filter_vmap(smooth, in_axes=(None, None, 0)))
     f64 = batch(model, prior, ys)
     f32 = batch(pendulum_model(jnp.float32),
-                *jax.tree.map(lambda a: a.astype(jnp.float32), (prior, ys)))  # fmt: skip
+                *je.astype((prior, ys), jnp.float32))  # fmt: skip
     assert f32.mean.dtype == jnp.float32 and bool(jnp.all(f32.ok))
     sd = jnp.sqrt(jnp.diagonal(f64.cov, axis1=-2, axis2=-1))
     assert float(jnp.max(jnp.abs(f32.mean - f64.mean) / sd)) < 1e-3

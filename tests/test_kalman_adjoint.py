@@ -118,8 +118,7 @@ def test_vmap_and_float32():
     scales = jnp.array([0.5, 1.0, 2.0])
 
     def batched(filt, dtype, save=None):
-        cast = lambda tree: jax.tree.map(lambda a: a.astype(dtype), tree)
-        mdl, pr, u = cast((model, prior, inputs))
+        mdl, pr, u = je.astype((model, prior, inputs), dtype)
 
         def one(scale, y):
             scaled = eqx.tree_at(lambda m: m.Q, mdl, scale * mdl.Q)
@@ -160,13 +159,13 @@ def test_noise_far_below_the_state_uncertainty_keeps_the_gradient_accurate():
     scales = jnp.array([[1e-2, 1e-1], [1e-6, 1e-1], [1e-2, 1e-7], [1e-6, 1e-5], [1e-12, 1e-1]])
 
     def gradients(filt, dtype, rows):
-        cast = lambda tree: jax.tree.map(lambda a: jnp.asarray(a, dtype), tree)
-
         def one(scale):
             model = je.LinearGaussian(F, H, scale[0] * jnp.eye(2), scale[1] * jnp.eye(1))
-            return jax.grad(lambda m: loglik(filt)(m, cast(prior), cast(ys), None))(cast(model))
+            return jax.grad(
+                lambda m: loglik(filt)(m, je.astype(prior, dtype), je.astype(ys, dtype), None)
+            )(je.astype(model, dtype))
 
-        return jax.jit(jax.vmap(one))(cast(scales[rows]))
+        return jax.jit(jax.vmap(one))(je.astype(scales[rows], dtype))
 
     reference = gradients(AUTODIFF, jnp.float64, slice(None))
     for dtype, rows, rtol in [(jnp.float64, slice(None), 1e-8), (jnp.float32, slice(4), 1e-3)]:

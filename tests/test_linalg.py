@@ -5,6 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxest as je
 from jaxest.linalg import (
     SMALL_FACTOR,
     after,
@@ -330,3 +331,22 @@ def test_right_svd_unrolls_only_small_matrices():
     assert lapack_calls((2 * SMALL_FACTOR, 6)) == []
     assert lapack_calls((29, 6)) != []
     assert lapack_calls((20, SMALL_FACTOR + 1)) != []
+
+
+def test_astype_casts_floating_arrays_and_leaves_the_rest():
+    """Every floating-point array of a model, a prior and data in one call; the integer and
+    boolean arrays, Python numbers and the model's functions as they are."""
+    model = je.NonlinearGaussian(lambda x, u: 0.9 * x, lambda x, u: x[:1], jnp.eye(2), jnp.eye(1))
+    prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
+    tree = (model, prior, jnp.ones((3, 1)), jnp.arange(3), jnp.array([True]), 0.5, None)
+    single = je.astype(tree, jnp.float32)
+    arrays = [leaf for leaf in jax.tree.leaves(single) if hasattr(leaf, "dtype")]
+    floats = [leaf for leaf in arrays if jnp.issubdtype(leaf.dtype, jnp.floating)]
+    assert len(floats) == 5 and all(leaf.dtype == jnp.float32 for leaf in floats)
+    assert single[0].transition_fn is model.transition_fn
+    assert single[0].observation_fn is model.observation_fn
+    assert single[3].dtype == jnp.arange(3).dtype and single[4].dtype == jnp.bool_
+    assert single[5] == 0.5 and single[6] is None
+    back = je.astype(single, jnp.float64)
+    assert back[1].cov.dtype == jnp.float64
+    np.testing.assert_array_equal(back[2], tree[2])

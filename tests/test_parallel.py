@@ -180,11 +180,10 @@ def test_float32_at_ten_thousand_steps():
     of the sequential update's terms (eq (6)), stays within 1e-3 (the combined one was +5.6e5
     for -3.2e4)."""
     model, prior, ys, ref = precise_measurements()
-    f32 = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32), tree)
     save = je.SaveAt(fields=("mean", "cov", "status"))
     results = {
-        square_root: je.run(je.ParallelKalmanFilter(square_root=square_root), f32(model),
-                            ys.astype(jnp.float32), prior=f32(prior), save=save)
+        square_root: je.run(je.ParallelKalmanFilter(square_root=square_root), je.astype(model, jnp.float32),
+                            ys.astype(jnp.float32), prior=je.astype(prior, jnp.float32), save=save)
         for square_root in (True, False)
     }  # fmt: skip
     res = results[True]
@@ -200,8 +199,8 @@ def test_float32_at_ten_thousand_steps():
     assert abs(float(standard.loglik) / ref - 1.0) < 1e-3
     assert isinstance(standard, je.ParallelFilterResult)
     with pytest.raises(Exception, match="LOGLIK_INCONSISTENT"):
-        je.run(je.ParallelKalmanFilter(square_root=False), f32(model), ys.astype(jnp.float32),
-               prior=f32(prior), save=je.SaveAt(fields=()), throw=True)  # fmt: skip
+        je.run(je.ParallelKalmanFilter(square_root=False), je.astype(model, jnp.float32), ys.astype(jnp.float32),
+               prior=je.astype(prior, jnp.float32), save=je.SaveAt(fields=()), throw=True)  # fmt: skip
 
 
 @pytest.mark.parametrize("dtype", [jnp.float32])
@@ -210,9 +209,8 @@ def test_jit_vmap_grad_through_fit(dtype):
     losses as with the sequential one. (float64: jit and grad in the gradient test above, vmap
     in the Monte Carlo test below.)"""
     model, prior, inputs, full, _ = problem()
-    cast = lambda tree: jax.tree.map(lambda a: a.astype(dtype), tree)
-    model, prior = cast(model), cast(prior)
-    batch, us = cast(jnp.stack([full[:8], full[8:16]])), cast(jnp.stack([inputs[:8]] * 2))
+    model, prior = je.astype((model, prior), dtype)
+    batch, us = je.astype((jnp.stack([full[:8], full[8:16]]), jnp.stack([inputs[:8]] * 2)), dtype)
     losses = {}
     for filt in (je.ParallelKalmanFilter(), je.KalmanFilter()):
         loss = je.neg_loglik(filt, batch, prior=prior, inputs=us)

@@ -160,7 +160,7 @@ def test_arguments_are_checked_as_the_models_and_the_scale_is_named():
             inputs=inputs(5),
             prior=scaled_prior,
         )
-    narrow = jax.tree.map(lambda a: a.astype(jnp.float32), scaled_prior)
+    narrow = je.astype(scaled_prior, jnp.float32)
     with pytest.raises(ValueError, match="prior: is float32, narrower"):
         je.run(
             je.KalmanFilter(),

@@ -131,13 +131,11 @@ def test_float32_keeps_what_the_covariance_form_loses(Filter, parallel):
         1e-6 * jnp.array([[1.0, 0.3], [0.3, 0.5]]), jnp.array([[3e-5]]),
     )  # fmt: skip
     prior = je.Gaussian(jnp.zeros(2), 300.0 * jnp.eye(2))
-    single = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32), tree)
-    model, prior = single(model), single(prior)  # the reference filters the same rounded numbers
+    # the reference filters the same rounded numbers
+    model, prior = je.astype((model, prior), jnp.float32)
     ys = jnp.asarray(np.random.default_rng(0).normal(size=(30, 1)), jnp.float32)
-    double = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float64), tree)
-    reference = je.rts_smooth(
-        double(model), je.run(je.KalmanFilter(), double(model), double(ys), prior=double(prior))
-    )
+    model64, ys64, prior64 = je.astype((model, ys, prior), jnp.float64)
+    reference = je.rts_smooth(model64, je.run(je.KalmanFilter(), model64, ys64, prior=prior64))
     filtered = je.run(Filter(), model, ys, prior=prior, save=with_factor(Filter))
     smoothed = je.rts_smooth(model, filtered, square_root=True, parallel=parallel)
     assert smoothed.mean.dtype == smoothed.cov.dtype == jnp.float32

@@ -81,7 +81,7 @@ def test_maximum_likelihood_recovers_q_and_r_from_tenfold_error():
 @pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
 def test_optimistix_minimiser_reaches_the_maximum_with_one_copy_of_the_gradient(dtype):
     truth64, prior64, sims = scalar_problem()
-    truth, prior, ys = jax.tree.map(lambda a: a.astype(dtype), (truth64, prior64, sims.y))
+    truth, prior, ys = je.astype((truth64, prior64, sims.y), dtype)
     wrong = je.LinearGaussian(truth.F, truth.H, 10 * truth.Q, truth.R / 10)
     traces = []
     nll = neg_loglik(KalmanFilter(), ys, prior=prior)
