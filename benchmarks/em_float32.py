@@ -19,7 +19,6 @@ one fit of each E-step (the best of three, compiled beforehand) against the cova
 from __future__ import annotations
 
 import argparse
-import time
 
 import jax
 
@@ -30,7 +29,7 @@ import numpy as np  # noqa: E402
 from smoother_float32 import random_system  # noqa: E402
 
 import jaxest as je  # noqa: E402
-from jaxest.report import emit_json  # noqa: E402
+from jaxest.report import emit_json, timed  # noqa: E402
 
 #: fit_em's (parallel, square_root) for each E-step
 E_STEPS = {
@@ -68,16 +67,6 @@ def score(result, ys) -> float:
         return float("nan")
 
 
-def best_time(fn, *args, repeats: int = 3) -> float:
-    jax.block_until_ready(fn(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - start)
-    return min(times)
-
-
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--systems", type=int, default=20)
@@ -110,10 +99,10 @@ def main(argv=None):
     ys, init, prior = problem(0, args)
     for dtype in (jnp.float32, jnp.float64):
         data = je.astype((init, ys, prior), dtype)
-        base = best_time(fits["covariance"], *data)
-        for name, fit in fits.items():
+        seconds = {name: timed(fit, data, repeats=3)[1] for name, fit in fits.items()}
+        for name in fits:
             entry = summary.setdefault(name, {})
-            entry[f"time_ratio_{jnp.dtype(dtype).name}"] = best_time(fit, *data) / base
+            entry[f"time_ratio_{jnp.dtype(dtype).name}"] = seconds[name] / seconds["covariance"]
     for name in fits:
         runs = [r[name] for r in rows]
         unflagged = [r["worse_by_nats"] for r in runs if r["status"] == "OK"]
