@@ -60,8 +60,15 @@ docs: $(BIN)/.installed-docs
 	rm -rf .cache/mkdocs-jupyter
 	PATH=$(CURDIR)/$(BIN):$$PATH $(BIN)/mkdocs build --strict
 
-# Opens every built page in headless Chromium (skips, saying so, where chromium is absent).
+# Opens every built page in headless Chromium. Debian's chromium and chromium-driver are installed
+# where absent (as root or by sudo; 19 s here), since a fresh machine has neither; where they can be
+# neither found nor installed the check fails rather than passing unseen.
+SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
+BROWSER_PACKAGES = chromium chromium-driver
 docs-check: docs
+	command -v chromedriver > /dev/null && command -v chromium > /dev/null || \
+		$(SUDO) apt-get install -y -q $(BROWSER_PACKAGES) > /dev/null || \
+		($(SUDO) apt-get update -q > /dev/null && $(SUDO) apt-get install -y -q $(BROWSER_PACKAGES) > /dev/null)
 	$(BIN)/python docs/check_site.py site
 
 # A wheel built from the sdist (as a release is, so nothing left in build/ gets in) installs into a
