@@ -338,7 +338,8 @@ def test_astype_casts_floating_arrays_and_leaves_the_rest():
     boolean arrays, Python numbers and the model's functions as they are."""
     model = je.NonlinearGaussian(lambda x, u: 0.9 * x, lambda x, u: x[:1], jnp.eye(2), jnp.eye(1))
     prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
-    tree = (model, prior, jnp.ones((3, 1)), jnp.arange(3), jnp.array([True]), 0.5, None)
+    key = jax.random.key(0)
+    tree = (model, prior, jnp.ones((3, 1)), jnp.arange(3), jnp.array([True]), 0.5, None, key)
     single = je.astype(tree, jnp.float32)
     arrays = [leaf for leaf in jax.tree.leaves(single) if hasattr(leaf, "dtype")]
     floats = [leaf for leaf in arrays if jnp.issubdtype(leaf.dtype, jnp.floating)]
@@ -346,7 +347,7 @@ def test_astype_casts_floating_arrays_and_leaves_the_rest():
     assert single[0].transition_fn is model.transition_fn
     assert single[0].observation_fn is model.observation_fn
     assert single[3].dtype == jnp.arange(3).dtype and single[4].dtype == jnp.bool_
-    assert single[5] == 0.5 and single[6] is None
+    assert single[5] == 0.5 and single[6] is None and single[7] is key
     back = je.astype(single, jnp.float64)
     assert back[1].cov.dtype == jnp.float64
     np.testing.assert_array_equal(back[2], tree[2])
