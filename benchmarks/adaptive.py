@@ -9,21 +9,17 @@ from __future__ import annotations
 
 import argparse
 import platform
-import time
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from jaxest.report import best_of, timed_call
+
 
 def _timed(fn, *args, repeats: int = 3) -> float:
-    jax.block_until_ready(fn(*args))  # compile
-    best = float("inf")
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - start)
-    return best
+    timed_call(lambda: fn(*args))  # compile
+    return best_of(lambda: fn(*args), repeats)[1]
 
 
 def main() -> None:

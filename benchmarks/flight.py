@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 
-from jaxest.report import device_name, emit_json  # noqa: E402
+from jaxest.report import best_of, device_name, emit_json  # noqa: E402
 from jaxest.studies import svd_ekf  # noqa: E402
 from jaxest.systems import flight_data, flight_sim as sim  # noqa: E402
 
@@ -51,11 +51,7 @@ def per_step_times(runs: int, rate: int, dtype_name: str, repeats: int = 3) -> d
         compiled = lowered.compile()
         compiled_at = time.perf_counter()
         jax.block_until_ready(compiled(*args))
-        best = float("inf")
-        for _ in range(repeats):
-            start_run = time.perf_counter()
-            jax.block_until_ready(compiled(*args))
-            best = min(best, time.perf_counter() - start_run)
+        best = best_of(lambda: compiled(*args), repeats)[1]
         out[name] = {
             "lower_s": lowered_at - start,
             "compile_s": compiled_at - lowered_at,

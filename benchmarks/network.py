@@ -23,7 +23,7 @@ jax.config.update("jax_enable_x64", True)
 from jaxest import Gaussian, run  # noqa: E402
 from jaxest.network import CommunicationStructure, NetworkFilter, steady_state  # noqa: E402
 from jaxest.network.structure import block_diag  # noqa: E402
-from jaxest.report import device_name, emit_json  # noqa: E402
+from jaxest.report import best_of, device_name, emit_json  # noqa: E402
 from jaxest.systems.chain import initial_prior, mass_chain  # noqa: E402
 
 
@@ -75,15 +75,6 @@ def numpy_design_rate(system, hears):
     return rate
 
 
-def timed(fn, repeat=3):
-    best = np.inf
-    for _ in range(repeat):
-        start = time.perf_counter()
-        out = jax.block_until_ready(fn())
-        best = min(best, time.perf_counter() - start)
-    return out, best
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=int, nargs="+", default=[3, 10, 30, 100])
@@ -101,7 +92,7 @@ def main():
         start = time.perf_counter()
         ss = jax.block_until_ready(steady_state(system, structure, cov0))
         first = time.perf_counter() - start
-        ss, design_s = timed(lambda: steady_state(system, structure, cov0))
+        ss, design_s = best_of(lambda: steady_state(system, structure, cov0), 3)
         row = {
             "N": N,
             "jaxest_design_s": design_s,
@@ -122,7 +113,7 @@ def main():
         ys = jax.random.normal(jax.random.key(0), (args.steps, N, system.obs_dim))
         filt = NetworkFilter(structure, ss.gains, dt)
         runner = jax.jit(lambda ys: run(filt, system, ys, prior=Gaussian(mean0, cov0)).mean)
-        means, run_s = timed(lambda: runner(ys))
+        means, run_s = best_of(lambda: runner(ys), 3)
         row["jaxest_run_s"] = run_s
         # NumPy loop of the same eq 9 step (innovation form), for speed and agreement
         A, C, L, H1, H2 = (np.asarray(getattr(system, m)) for m in ("A", "C", "L", "H1", "H2"))

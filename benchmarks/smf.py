@@ -111,7 +111,7 @@ def main(argv=None):
 
     import jax
 
-    from jaxest.report import device_name, emit_json
+    from jaxest.report import best_of, device_name, emit_json
 
     jax.config.update("jax_enable_x64", True)
     from jaxest.studies import smf_fdi
@@ -123,14 +123,14 @@ def main(argv=None):
     start = time.perf_counter()
     jax.block_until_ready(study(sharded))
     compile_seconds = time.perf_counter() - start
-    study_seconds = _best_of(lambda: jax.block_until_ready(study(sharded)))
+    study_seconds = best_of(lambda: study(sharded), 5)[1]
     one_device = jax.device_put(keys, jax.devices()[0])
     jax.block_until_ready(study(one_device))
-    study_seconds_one_device = _best_of(lambda: jax.block_until_ready(study(one_device)))
+    study_seconds_one_device = best_of(lambda: study(one_device), 5)[1]
 
     one_filter = smf_fdi.single_filter_function(closed_form_bound=True)
     jax.block_until_ready(one_filter(keys))
-    jax_seconds = _best_of(lambda: jax.block_until_ready(one_filter(keys)))
+    jax_seconds = best_of(lambda: one_filter(keys), 5)[1]
 
     model, prior = (
         duffing.model(closed_form_bound=True),
@@ -160,15 +160,6 @@ def main(argv=None):
     }
     emit_json(result, args.json)
     return 0
-
-
-def _best_of(fn, repeats=5):
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return min(times)
 
 
 if __name__ == "__main__":

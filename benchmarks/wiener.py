@@ -17,14 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import platform
-import time
 
 import jax
 import jax.numpy as jnp
 
 from jaxest import Gaussian, run
 from jaxest.filters.kalman import KalmanFilter
-from jaxest.report import device_name, emit_json
+from jaxest.report import best_of, device_name, emit_json
 from jaxest.smoothers.rts import rts_smooth
 from jaxest.smoothers.wiener import WienerSmoother
 from jaxest.systems.wiener_example import ARBITRARY_START, paper_model
@@ -33,18 +32,14 @@ from jaxest.systems.wiener_example import ARBITRARY_START, paper_model
 def measure(fn, *args, repeats):
     compiled = jax.jit(fn).lower(*args).compile()
     jax.block_until_ready(compiled(*args))
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        jax.block_until_ready(compiled(*args))
-        times.append(time.perf_counter() - start)
+    seconds = best_of(lambda: compiled(*args), repeats)[1]
     memory = compiled.memory_analysis()
     total = None
     if memory is not None:
         total = (
             memory.argument_size_in_bytes + memory.output_size_in_bytes + memory.temp_size_in_bytes
         )
-    return min(times), total
+    return seconds, total
 
 
 def main(argv=None):

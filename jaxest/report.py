@@ -66,6 +66,14 @@ def timed_call(call) -> tuple[object, float]:
     return result, time.perf_counter() - start
 
 
+def best_of(call, repeats: int) -> tuple[object, float]:
+    """The last result of ``repeats`` calls of ``call()`` (each waited for, :func:`timed_call`)
+    and the fastest call's seconds, the benchmarks' measure of a time: the other calls only add
+    the machine's noise. Call it once before, to compile it."""
+    runs = [timed_call(call) for _ in range(repeats)]
+    return runs[-1][0], min(seconds for _, seconds in runs)
+
+
 def timed(fn, args, repeats: int = 5, compiler_options=None) -> tuple[float, float, object]:
     """(compile seconds, best run seconds, output) of ``jax.jit(fn)(*args)``: compiled ahead of
     time (with ``compiler_options``), run once to warm up (its output is returned), then the
@@ -73,8 +81,8 @@ def timed(fn, args, repeats: int = 5, compiler_options=None) -> tuple[float, flo
     run's time, for runs too long to repeat."""
     compiled, compile_s = timed_call(lambda: jax.jit(fn).lower(*args).compile(compiler_options))
     output, warm_up_s = timed_call(lambda: compiled(*args))
-    repeat_s = [timed_call(lambda: compiled(*args))[1] for _ in range(repeats)]
-    return compile_s, min(repeat_s, default=warm_up_s), output
+    best_s = best_of(lambda: compiled(*args), repeats)[1] if repeats else warm_up_s
+    return compile_s, best_s, output
 
 
 def device_name() -> str:
