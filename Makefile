@@ -63,7 +63,7 @@ docs: $(BIN)/.installed-docs
 # Opens every built page in headless Chromium. Debian's chromium and chromium-driver are installed
 # where absent (as root or by sudo; 19 s here), since a fresh machine has neither; where they can be
 # neither found nor installed the check fails rather than passing unseen.
-SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
+SUDO = $(if $(filter 0,$(shell id -u)),,sudo)
 BROWSER_PACKAGES = chromium chromium-driver
 docs-check: docs
 	command -v chromedriver > /dev/null && command -v chromium > /dev/null || \

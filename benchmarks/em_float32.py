@@ -60,7 +60,7 @@ def fitter(args, parallel, square_root):
 def score(result, ys) -> float:
     """log p(y) of the fitted model and prior, by the float64 Kalman filter; NaN where they are
     not a model (not finite, or a covariance not positive definite: ``run`` refuses them)."""
-    model, prior = je.astype(result.model, jnp.float64), je.astype(result.prior, jnp.float64)
+    model, prior = je.astype((result.model, result.prior), jnp.float64)
     try:
         return float(je.run(je.KalmanFilter(), model, ys, prior=prior).loglik)
     except ValueError:

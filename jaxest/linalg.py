@@ -66,8 +66,9 @@ def _traced_at_highest(fn, keep_callers_choice: bool):
 def astype(tree, dtype):
     """``tree`` (a model, a prior, data, a result, or a tuple of them) with every real
     floating-point array cast to ``dtype``; other leaves (integer, boolean, complex and PRNG key
-    arrays, Python numbers, functions) as they are. ``je.astype((model, prior, ys), jnp.float32)`` runs a study in
-    float32; ``jnp.float64`` is float32 unless ``jax_enable_x64`` is on."""
+    arrays, Python numbers, functions) as they are. ``je.astype((model, prior, ys),
+    jnp.float32)`` runs a study in float32; ``jnp.float64`` is float32 unless
+    ``jax_enable_x64`` is on."""
 
     def cast(leaf):
         floating = hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating)

@@ -153,7 +153,7 @@ def test_status_under_jit_and_vmap(dtype):
     """A batch of a sound and a degenerate fit under ``jit(vmap(...))``: each run keeps its
     own flags, and the sound run's results equal its fit alone."""
     _, ys, _, init, init_prior = system(0, 2, 2, 40)
-    init, init_prior, ys = je.astype(init, dtype), je.astype(init_prior, dtype), ys.astype(dtype)
+    init, init_prior, ys = je.astype((init, init_prior, ys), dtype)
     # the second run: every measurement equal, so the fitted R collapses to 0
     batch = jnp.stack([ys, jnp.ones_like(ys)])
     fits = jax.jit(jax.vmap(lambda y: je.fit_em(init, y, prior=init_prior, num_iters=4)))(batch)

@@ -84,7 +84,7 @@ def timing(n: int, T: int, dtype, repeats: int = 3, methods=tuple(METHODS)) -> l
     :data:`METHODS`), its log-likelihood's relative difference from the float64 sequential
     filter's, and the filter's status flags."""
     model64, prior64, ys, reference = _problem(n, T)
-    args = (je.astype(model64, dtype), je.astype(prior64, dtype), ys.astype(dtype))
+    args = je.astype((model64, prior64, ys), dtype)
     rows = []
     for name in methods:
         filt, parallel = METHODS[name]
