@@ -127,7 +127,8 @@ def fit(
             (Cholesky parametrisation) or a dict path -> ``"cholesky"`` / ``"log_diagonal"`` /
             ``"unconstrained"`` (see the module docstring). The starting matrix must be one the
             parametrisation represents: symmetric positive definite for ``"cholesky"``,
-            diagonal with positive entries for ``"log_diagonal"`` (``ValueError`` otherwise).
+            diagonal with positive entries for ``"log_diagonal"``, and floating point for
+            each (``ValueError`` otherwise).
         free: optional path -> boolean mask of the unconstrained parameter's free entries
             (shape n x n for Cholesky, n for log-diagonal).
         optimizer: an optax transformation (default ``optax.adam(0.05)``), or an optimistix
@@ -166,6 +167,11 @@ def fit(
             raise ValueError(f"params: model has no attribute {path!r}") from err
         if getattr(P, "ndim", 0) != 2:
             raise ValueError(f"params[{path!r}]: expected a constant matrix to fit")
+        if not jnp.issubdtype(P.dtype, jnp.floating):  # grad would raise a TypeError in optax
+            raise ValueError(
+                f"params[{path!r}]: expected a floating-point matrix to fit, got {P.dtype} "
+                "(build the model from floating-point arrays)"
+            )
         if kind != "unconstrained" and P.shape[0] != P.shape[1]:
             raise ValueError(f"params[{path!r}]: {kind} needs a square matrix, got {P.shape}")
         _check_start(f"params[{path!r}]", P, kind)

@@ -270,6 +270,9 @@ def test_losses_and_fit_name_bad_arguments():
         (r"^free\['Q'\]: expected a mask of shape \(1, 1\)", lambda: fit(truth, loss, ["Q"], free={"Q": jnp.ones(2)})),
         ("^free: 'R' is not one of the fitted", lambda: fit(truth, loss, ["Q"], free={"R": jnp.ones((1, 1))})),
         ("^num_steps", lambda: fit(truth, loss, ["Q"], num_steps=-1)),
+        # an integer matrix reached optax's grad, which raised a TypeError
+        (r"^params\['F'\]: expected a floating-point matrix to fit, got int32", lambda: fit(eqx.tree_at(lambda m: m.F, truth, jnp.ones((1, 1), jnp.int32)), loss, {"F": "unconstrained"})),
+        (r"^params\['Q'\]: expected a floating-point", lambda: fit(eqx.tree_at(lambda m: m.Q, truth, jnp.ones((1, 1), jnp.int32)), loss, ["Q"])),
         ("^count", lambda: je.log_variance_standard_errors(truth, loss, 0)),
         # the runs are traced under the losses' vmap: an infinite entry gave a NaN loss
         ("^ys: contains \\+-inf", lambda: neg_loglik(KalmanFilter(), sims.y.at[1, 3, 0].set(jnp.inf), prior=prior)),
