@@ -50,6 +50,12 @@ def check_positive_int(name: str, value) -> None:
         raise ValueError(f"{name}: must be a positive integer, got {value!r}")
 
 
+def check_callable(name: str, value) -> None:
+    """``value`` can be called (the user's function: a loss, one Monte Carlo run)."""
+    if not callable(value):
+        raise ValueError(f"{name}: expected a function, got {type(value).__name__}")
+
+
 def check_nonnegative_int(name: str, value) -> None:
     """``value`` is an integer of at least 0, Python's or NumPy's, not a bool (a count that may
     be zero: steps)."""

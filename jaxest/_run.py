@@ -32,7 +32,8 @@ from jaxest.linalg import working_precision_by_default
 class SaveAt(eqx.Module):
     """What :func:`run` keeps of each step's output.
 
-    ``fields``: the output fields stacked over time (``None``: the estimator's defaults; ``()``:
+    ``fields``: the output fields stacked over time, a name or a sequence of names (``None``:
+    the estimator's defaults; ``()``:
     none -- the result then holds the final state, ``any_status`` and what the state accumulates,
     e.g. a Gaussian filter's total log-likelihood). ``fn``: a function of each step's output
     whose values are stacked into ``result.saved`` (e.g. ``lambda out: out.mean[:2]``).
@@ -42,6 +43,8 @@ class SaveAt(eqx.Module):
     fn: Callable | None = eqx.field(static=True, default=None)
 
     def __init__(self, fields: Sequence[str] | None = None, fn: Callable | None = None):
+        if isinstance(fields, str):  # one name, not its letters
+            fields = (fields,)
         self.fields = None if fields is None else tuple(fields)
         self.fn = fn
 
@@ -107,6 +110,15 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
     )
 
 
+def check_estimator(estimator) -> None:
+    """``estimator`` is a jaxest estimator (``ValueError`` naming it otherwise)."""
+    if not isinstance(estimator, AbstractEstimator):
+        raise ValueError(
+            f"estimator: expected a jaxest estimator (an AbstractEstimator), "
+            f"got {type(estimator).__name__}"
+        )
+
+
 @working_precision_by_default
 def run(
     estimator: AbstractEstimator,
@@ -164,11 +176,7 @@ def run(
             f"prior: pass prior, inputs and key by keyword, run(estimator, model, ys, "
             f"prior=..., inputs=...); got {len(args)} extra positional argument(s)"
         )
-    if not isinstance(estimator, AbstractEstimator):
-        raise ValueError(
-            f"estimator: expected a jaxest estimator (an AbstractEstimator), "
-            f"got {type(estimator).__name__}"
-        )
+    check_estimator(estimator)
     associative = isinstance(estimator, AbstractAssociativeEstimator)
     if parallel is None:
         parallel = associative and state is None
@@ -178,6 +186,8 @@ def run(
         raise ValueError("parallel: resuming from a state is sequential; pass parallel=False")
     if checkpoint is not None and not isinstance(checkpoint, bool):
         raise ValueError(f"checkpoint: expected True, False or None, got {checkpoint!r}")
+    if not (save is None or isinstance(save, SaveAt)):
+        raise ValueError(f"save: expected a jaxest.SaveAt or None, got {type(save).__name__}")
     if checkpoint and parallel:
         raise ValueError(
             "checkpoint: recomputes the steps of a sequential run; pass parallel=False with it"

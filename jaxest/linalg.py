@@ -68,7 +68,14 @@ def astype(tree, dtype):
     floating-point array cast to ``dtype``; other leaves (integer, boolean, complex and PRNG key
     arrays, Python numbers, functions) as they are. ``je.astype((model, prior, ys),
     jnp.float32)`` runs a study in float32; ``jnp.float64`` is float32 unless
-    ``jax_enable_x64`` is on."""
+    ``jax_enable_x64`` is on. ``dtype`` must be a floating-point type (``ValueError``
+    otherwise)."""
+    try:
+        floating_dtype = jnp.dtype(dtype)
+    except TypeError as err:
+        raise ValueError(f"dtype: not a data type: {dtype!r}") from err
+    if not jnp.issubdtype(floating_dtype, jnp.floating):
+        raise ValueError(f"dtype: expected a floating-point type, got {floating_dtype}")
 
     def cast(leaf):
         floating = hasattr(leaf, "dtype") and jnp.issubdtype(leaf.dtype, jnp.floating)

@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from jaxest._checks import check_key, check_positive_int, is_concrete
+from jaxest._checks import check_callable, check_key, check_positive_int, is_concrete
 from jaxest.batching import COMPILER_OPTIONS, jit_with_options_at_top_level, vmap_minor
 
 RUNS_AXIS = "runs"
@@ -78,6 +78,7 @@ def monte_carlo(
     step of a study's mean loss); across processes it gathers the outputs on the hosts, so it is
     called outside ``jit`` with a concrete key.
     """
+    check_callable("run_fn", run_fn)
     check_key("key", key)
     check_positive_int("num_runs", num_runs)
     if batching not in _BATCHINGS:

@@ -25,6 +25,7 @@ import numpy as np
 import optax
 
 from jaxest._checks import (
+    check_callable,
     check_key,
     check_matrix,
     check_measurements,
@@ -32,7 +33,7 @@ from jaxest._checks import (
     check_positive_int,
     is_concrete,
 )
-from jaxest._run import SaveAt, run
+from jaxest._run import SaveAt, check_estimator, run
 from jaxest._status import finite_status
 
 if TYPE_CHECKING:
@@ -112,7 +113,7 @@ def _get(model, path: str):
 def fit(
     model,
     loss: Callable,
-    params: dict[str, str] | Sequence[str] = ("Q", "R"),
+    params: dict[str, str] | Sequence[str] | str = ("Q", "R"),
     *,
     free: dict[str, jax.Array] | None = None,
     optimizer: optax.GradientTransformation | optx.AbstractMinimiser | None = None,
@@ -123,8 +124,8 @@ def fit(
     Args:
         model: any equinox Module (a model, or a pytree holding model and prior).
         loss: ``model -> scalar``, e.g. :func:`neg_loglik` or :func:`supervised_mse`.
-        params: attribute paths (``"Q"``, ``"R"``, ``"prior.cov"``...), as a sequence
-            (Cholesky parametrisation) or a dict path -> ``"cholesky"`` / ``"log_diagonal"`` /
+        params: attribute paths (``"Q"``, ``"R"``, ``"prior.cov"``...), as one path or a
+            sequence of them (Cholesky parametrisation), or a dict path -> ``"cholesky"`` / ``"log_diagonal"`` /
             ``"unconstrained"`` (see the module docstring). The starting matrix must be one the
             parametrisation represents: symmetric positive definite for ``"cholesky"``,
             diagonal with positive entries for ``"log_diagonal"``, and floating point for
@@ -156,6 +157,9 @@ def fit(
     The parametrisations, the steps and the fitted matrices are compiled as one program, with
     the model's arrays concrete in its trace (as ``loss`` would see them called directly).
     """
+    check_callable("loss", loss)
+    if isinstance(params, str):  # one path, not its letters
+        params = (params,)
     if not isinstance(params, dict):
         params = dict.fromkeys(params, "cholesky")
     for path, kind in params.items():
@@ -212,7 +216,12 @@ def fit(
                 for path, kind in params.items()
             }
 
-        objective = lambda theta: loss(_with_matrices(model, matrices(theta)))
+        def objective(theta):
+            value = loss(_with_matrices(model, matrices(theta)))
+            if jnp.shape(value) != ():  # grad would raise a TypeError
+                raise ValueError(f"loss: must return a scalar, got shape {jnp.shape(value)}")
+            return value
+
         minimise = _minimiser_steps if minimiser else _optax_steps
         theta, losses, status = minimise(optimizer, objective, theta0, num_steps)
         return matrices(theta), losses, status
@@ -400,6 +409,7 @@ def _over_runs(
     (runs, T, m) under one ``vmap``: what the losses below are made of. Run i draws with
     ``jax.random.split(key, runs)[i]`` (``key``: ``None`` for estimators that do not sample), the
     same keys at every evaluation."""
+    check_estimator(estimator)
     if np.ndim(ys) != 3:
         raise ValueError(
             f"ys: expected a batch of shape (runs, T, m), got {np.shape(ys)} (one sequence: "

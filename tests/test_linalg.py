@@ -351,3 +351,8 @@ def test_astype_casts_floating_arrays_and_leaves_the_rest():
     back = je.astype(single, jnp.float64)
     assert back[1].cov.dtype == jnp.float64
     np.testing.assert_array_equal(back[2], tree[2])
+    # an integer type truncated every float without a word; a misspelt name was JAX's TypeError
+    with pytest.raises(ValueError, match="^dtype: expected a floating-point type, got int32"):
+        je.astype(tree, jnp.int32)
+    with pytest.raises(ValueError, match="^dtype: not a data type: 'float33'"):
+        je.astype(tree, "float33")

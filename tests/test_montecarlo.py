@@ -133,6 +133,8 @@ def test_rejects_bad_arguments():
         monte_carlo(lambda k: k, jax.random.PRNGKey(0), 0)
     with pytest.raises(ValueError, match="chunk_size"):
         monte_carlo(lambda k: k, jax.random.PRNGKey(0), 3, chunk_size=0)
+    with pytest.raises(ValueError, match="^run_fn: expected a function, got int"):  # a TypeError
+        monte_carlo(3, jax.random.PRNGKey(0), 3)
     # JAX's TypeErrors, an AttributeError and a rejected NumPy integer named nothing before
     draw = lambda k: jax.random.normal(k)
     for key, message in [

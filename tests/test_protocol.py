@@ -203,6 +203,10 @@ def test_save_chooses_what_is_kept():
     assert np.allclose(np.triu(np.asarray(sqrt.factor.chol[5]), 1), 0.0)
     with pytest.raises(ValueError, match="save"):
         je.run(je.KalmanFilter(), model, ys, prior=PRIOR, save=je.SaveAt(fields=("means",)))
+    # a field name alone was read as its letters; a plain string raised an AttributeError
+    assert je.SaveAt(fields="mean").fields == ("mean",)
+    with pytest.raises(ValueError, match="^save: expected a jaxest.SaveAt or None, got str"):
+        je.run(je.KalmanFilter(), model, ys, prior=PRIOR, save="mean")
 
 
 @pytest.mark.parametrize("Filter", [je.KalmanFilter, je.SVDEKF, je.SquareRootKF])

@@ -272,6 +272,9 @@ def test_losses_and_fit_name_bad_arguments():
         ("^num_steps", lambda: fit(truth, loss, ["Q"], num_steps=-1)),
         # an integer matrix reached optax's grad, which raised a TypeError
         (r"^params\['F'\]: expected a floating-point matrix to fit, got int32", lambda: fit(eqx.tree_at(lambda m: m.F, truth, jnp.ones((1, 1), jnp.int32)), loss, {"F": "unconstrained"})),
+        ("^loss: expected a function, got int", lambda: fit(truth, 3, ["Q"])),  # a TypeError
+        ("^loss: must return a scalar, got shape \\(1, 1\\)", lambda: fit(truth, lambda m: m.Q, ["Q"])),
+        ("^estimator: expected a jaxest estimator", lambda: neg_loglik("kalman", sims.y, prior=prior)),
         (r"^params\['Q'\]: expected a floating-point", lambda: fit(eqx.tree_at(lambda m: m.Q, truth, jnp.ones((1, 1), jnp.int32)), loss, ["Q"])),
         ("^count", lambda: je.log_variance_standard_errors(truth, loss, 0)),
         # the runs are traced under the losses' vmap: an infinite entry gave a NaN loss
@@ -281,6 +284,15 @@ def test_losses_and_fit_name_bad_arguments():
         with pytest.raises(ValueError, match=message):
             call()
     assert fit(truth, loss, ["Q"], num_steps=0).losses.shape == (0,)  # the start, unchanged
+    # one path, not its letters ("prior.cov" was read as "p", "r", ...)
+    start = ModelAndPrior(truth, prior)
+    one = fit(start, lambda mp: jnp.sum((mp.prior.cov - 2.0) ** 2), "prior.cov", num_steps=3)
+    assert 1.0 < float(one.model.prior.cov[0, 0]) < 2.0
+
+
+class ModelAndPrior(eqx.Module):
+    model: je.LinearGaussian
+    prior: je.Gaussian
 
 
 @pytest.mark.parametrize(
