@@ -56,6 +56,14 @@ def check_callable(name: str, value) -> None:
         raise ValueError(f"{name}: expected a function, got {type(value).__name__}")
 
 
+def check_flag(name: str, value, *, none: bool = False) -> None:
+    """``value`` is True or False (or ``None`` where ``none``): a switch, where a string such
+    as ``"no"`` would otherwise count as true."""
+    if not (isinstance(value, bool | np.bool_) or none and value is None):
+        allowed = "True, False or None" if none else "True or False"
+        raise ValueError(f"{name}: expected {allowed}, got {value!r}")
+
+
 def check_nonnegative_int(name: str, value) -> None:
     """``value`` is an integer of at least 0, Python's or NumPy's, not a bool (a count that may
     be zero: steps)."""
@@ -304,6 +312,15 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     shapes = model_shapes(model, prior.mean, u0)
     m = shapes["h(x)"][0]
     check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")  # blame ys
+    q = check_model_shapes(model, shapes, n, "prior.mean")
+    check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
+
+
+def check_model_shapes(model, shapes: dict[str, tuple], n: int, state: str) -> int | None:
+    """What the model returns (``shapes``, :func:`model_shapes`) fits a state of size ``n``
+    (the size of ``state``, named in the error) and its own h(x); returns the process noise's
+    size q (``None`` where its G is not a matrix)."""
+    m = shapes["h(x)"][0]
     q = shapes["G"][-1] if len(shapes["G"]) == 2 else None
     expected = {
         "f(x)": (n,), "F": (n, n), "G": (n, q), "Q": (q, q),
@@ -315,9 +332,9 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
             where = f"model.{name}" if builtin and name in "FGHQR" else f"model: its {name}"
             raise ValueError(
                 f"{where}: has shape {shapes[name]}, expected {want} for a state of "
-                f"size {n} (prior.mean) and {m} measurements"
+                f"size {n} ({state}) and {m} measurements"
             )
-    check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
+    return q
 
 
 def check_precision(model, ys, prior, *, name: str = "prior", **updated_with) -> None:
@@ -383,8 +400,9 @@ def _abstract_signature(tree):
     return signature
 
 
-def model_shapes(model, x, u) -> dict[str, tuple]:
-    """Shapes of what the model's methods return at ``x`` (abstractly: nothing is computed).
+def model_shapes(model, x, u, state: str = "prior.mean") -> dict[str, tuple]:
+    """Shapes of what the model's methods return at ``x`` (abstractly: nothing is computed);
+    a model that cannot be evaluated there is an error naming ``state``, where ``x`` comes from.
 
     Remembered for the last :data:`_SHAPES_KEPT` signatures: tracing a model's transition and
     its Jacobian (an RK4 flight model: 0.2 s) is otherwise repeated by every :func:`jaxest.run`
@@ -392,7 +410,7 @@ def model_shapes(model, x, u) -> dict[str, tuple]:
     signature = _abstract_signature((model, x, u))
     if signature is not None and signature in _SHAPES_SEEN:
         return _SHAPES_SEEN[signature]
-    shapes = _evaluate_shapes(model, x, u)
+    shapes = _evaluate_shapes(model, x, u, state)
     if signature is not None:
         _SHAPES_SEEN[signature] = shapes
         if len(_SHAPES_SEEN) > _SHAPES_KEPT:
@@ -400,7 +418,7 @@ def model_shapes(model, x, u) -> dict[str, tuple]:
     return shapes
 
 
-def _evaluate_shapes(model, x, u) -> dict[str, tuple]:
+def _evaluate_shapes(model, x, u, state: str) -> dict[str, tuple]:
     try:
         f, F, G, Q = jax.eval_shape(model.transition, x, u, 0)
         h, H, R = jax.eval_shape(model.observation, x, u, 0)
@@ -413,7 +431,7 @@ def _evaluate_shapes(model, x, u) -> dict[str, tuple]:
             ) from err
         inputs = "u = None" if u is None else f"u of shape {jax.tree.map(np.shape, u)}"
         raise ValueError(
-            f"prior.mean: the model cannot be evaluated at a state of shape {np.shape(x)} "
+            f"{state}: the model cannot be evaluated at a state of shape {np.shape(x)} "
             f"with {inputs} and k = 0 ({type(err).__name__}: {err}); check the state's size, "
             f"and that the model's functions take (x), (x, u) or (x, u, k)"
         ) from err

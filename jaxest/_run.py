@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxest._checks import check_key, concrete_k0, first_input
+from jaxest._checks import check_flag, check_key, concrete_k0, first_input
 from jaxest._estimator import (
     AbstractAssociativeEstimator,
     AbstractEstimator,
@@ -177,6 +177,9 @@ def run(
             f"prior=..., inputs=...); got {len(args)} extra positional argument(s)"
         )
     check_estimator(estimator)
+    check_flag("parallel", parallel, none=True)
+    check_flag("checkpoint", checkpoint, none=True)
+    check_flag("throw", throw)
     associative = isinstance(estimator, AbstractAssociativeEstimator)
     if parallel is None:
         parallel = associative and state is None
@@ -184,8 +187,6 @@ def run(
         raise ValueError(f"parallel: {type(estimator).__name__} is not associative")
     if parallel and state is not None:
         raise ValueError("parallel: resuming from a state is sequential; pass parallel=False")
-    if checkpoint is not None and not isinstance(checkpoint, bool):
-        raise ValueError(f"checkpoint: expected True, False or None, got {checkpoint!r}")
     if not (save is None or isinstance(save, SaveAt)):
         raise ValueError(f"save: expected a jaxest.SaveAt or None, got {type(save).__name__}")
     if checkpoint and parallel:
@@ -271,6 +272,8 @@ def raise_if_failed(result: AbstractResult):
 
     The message lists what each of the family's flags (``type(result).flags``) means.
     """
+    if not isinstance(result, AbstractResult):
+        raise ValueError(f"result: expected a jaxest result, got {type(result).__name__}")
     flags = type(result).flags
     message = "a step's status is not OK; result.any_status has the flags. " + "; ".join(
         flags.explain(flag) for flag in flags if flag.value

@@ -49,6 +49,7 @@ from jax import lax
 from jax.extend import core as jex_core
 
 from jaxest import xla_flags
+from jaxest._checks import check_callable
 from jaxest._jaxpr import any_equation
 from jaxest.linalg import SMALL_MATMUL
 
@@ -88,6 +89,7 @@ def vmap_minor(fn: Callable, in_axes=0) -> Callable:
         leading axis, as ``jax.vmap``'s do (``out_axes=0``); outputs that do not depend on a
         batched argument are broadcast.
     """
+    check_callable("fn", fn)
     _check_in_axes(in_axes)
 
     def batched(*args):

@@ -61,6 +61,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import (
     check_complete,
+    check_flag,
     check_gaussian_arguments,
     check_gaussian_prior,
     check_positive_int,
@@ -330,6 +331,7 @@ def fit_em(
     :data:`EMStatus` flags (``result.ok``: all OK).
     """
     _check(model, ys, prior, num_iters, fixed, inputs, parallel, square_root)
+    check_flag("throw", throw)
     ys = jnp.asarray(ys)
     inputs = None if inputs is None else jnp.asarray(inputs)
     result = _fit_em(model, prior, ys, inputs, num_iters, frozenset(fixed), parallel, square_root)
@@ -355,6 +357,8 @@ def _check(model, ys, prior, num_iters, fixed, inputs, parallel, square_root):
     if isinstance(fixed, str) or any(name not in PARAMETERS for name in fixed):
         raise ValueError(f"fixed: expected names from {PARAMETERS}, got {fixed!r}")
     check_positive_int("num_iters", num_iters)
+    check_flag("parallel", parallel)
+    check_flag("square_root", square_root)
     check_gaussian_prior(prior, model.F.shape[-1])
     # the square-root filters of the parallel and square_root E-steps factor Q: a singular one
     # gave NaN (status 13)

@@ -376,6 +376,7 @@ def simulate(
         check_inputs,
         check_key,
         check_matrix,
+        check_model_shapes,
         first_input,
         model_shapes,
     )
@@ -391,8 +392,15 @@ def simulate(
         raise ValueError(f"num_steps: must not be negative, got {steps}")
     check_key("key", key)  # JAX's own errors for an int seed or a batch of keys named none
     if not isinstance(x0, Gaussian):
-        x0 = jnp.asarray(x0)  # an initial state given as a list or a number, too
+        try:  # an initial state given as a list or a number, too
+            x0 = jnp.asarray(x0)
+        except (TypeError, ValueError) as err:
+            raise ValueError(
+                f"x0: expected an initial state (an array) or a jaxest.Gaussian, got "
+                f"{type(x0).__name__}"
+            ) from err
     start = x0.mean if isinstance(x0, Gaussian) else x0
+    check_matrix("x0", start, ndim=1)  # finite
     if isinstance(model, LinearGaussian):
         check_matrix("model.F", model.F, square=True)
     if inputs is not None:
@@ -409,14 +417,14 @@ def simulate(
         m, q = model.H.shape[-2], n if model.G is None else model.G.shape[-1]
         check_matrix("model.Q", model.Q, (q, q), psd=True)
         check_matrix("model.R", model.R, (m, m), psd=True)
-    elif isinstance(model, NonlinearGaussian):
-        check_matrix("model.Q", model.Q, psd=True)
-        check_matrix("model.R", model.R, psd=True)
+    else:  # what its functions return (an f(x) of another size was broadcast into the state)
+        if isinstance(model, NonlinearGaussian):
+            check_matrix("model.Q", model.Q, psd=True)
+            check_matrix("model.R", model.R, psd=True)
         u0 = None if inputs is None else jax.tree.map(first_input, inputs)
-        model_shapes(model, start, u0)  # f(x), h(x) arrays
+        check_model_shapes(model, model_shapes(model, start, u0, "x0"), start.shape[-1], "x0")
     if isinstance(x0, Gaussian):
         check_matrix("x0.cov", x0.cov, psd=True)
-    check_matrix("x0", start, ndim=1)  # finite
     return _simulate(model, x0, steps, key, inputs, process_noise, measurement_noise)
 
 

@@ -42,6 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxest._checks import check_callable
+
 #: T / C, the steps the first level is cut into (module docstring)
 CHUNKS = 256
 #: fewest lanes per step
@@ -103,6 +105,7 @@ def associative_scan(fn, elems, *, reverse: bool = False):
     ``lax.associative_scan``; ``reverse=True``: suffixes, ``fn`` still called as ``fn(a, b)``
     with ``a`` the element later in the sequence), by the same combination tree as
     ``lax.associative_scan`` and with the combination compiled once (module docstring)."""
+    check_callable("fn", fn)
     T = jax.tree.leaves(elems)[0].shape[0]
     if T < 2:
         return elems

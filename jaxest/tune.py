@@ -473,9 +473,18 @@ def supervised_mse(
 def log_variances(model):
     """theta = [log diag Q, log diag R] of ``model``: the parameters of a ``"log_diagonal"`` fit of
     Q and R."""
+    _check_noise_matrices(model)
     return jnp.concatenate(
         [to_unconstrained(model.Q, "log_diagonal"), to_unconstrained(model.R, "log_diagonal")]
     )
+
+
+def _check_noise_matrices(model) -> None:
+    if not (hasattr(model, "Q") and hasattr(model, "R")):
+        raise ValueError(
+            f"model: expected a model with noise covariances Q and R (a LinearGaussian or "
+            f"NonlinearGaussian), got {type(model).__name__}"
+        )
 
 
 def log_variance_standard_errors(model, loss: Callable, count: int) -> np.ndarray:
@@ -487,6 +496,8 @@ def log_variance_standard_errors(model, loss: Callable, count: int) -> np.ndarra
     steps). At a maximum-likelihood fit, (theta - truth) / se is then approximately standard
     normal.
     """
+    _check_noise_matrices(model)
+    check_callable("loss", loss)
     check_positive_int("count", count)
     q = model.Q.shape[-1]
 

@@ -551,3 +551,37 @@ def test_rts_smooth_compiles_once():
     smooth = je.rts_smooth(Counting(jnp.asarray(0.8)), res)
     assert bool(smooth.ok)
     assert first > 0 and len(traces) == first  # the second call reused the compiled smoother
+
+
+def test_switches_functions_and_results_are_named():
+    """A string such as "no" counted as true for every switch; the others raised TypeErrors or
+    AttributeErrors from inside, or (an f(x) of the wrong size) were broadcast into the state."""
+    model, ys, prior = good()
+    result = je.run(KalmanFilter(), model, ys, prior=prior)
+    observer = dict(M=jnp.eye(1), Sigma=jnp.eye(1), Q=jnp.eye(2), R=jnp.eye(1))
+    short = je.NonlinearGaussian(lambda x: x[:1], lambda x: x[:1], model.Q, model.R)
+    cases = [
+        ("^parallel: expected True, False or None, got 'no'", lambda: je.run(je.ParallelKalmanFilter(), model, ys, prior=prior, parallel="no")),
+        ("^throw: expected True or False, got 'no'", lambda: je.run(KalmanFilter(), model, ys, prior=prior, throw="no")),
+        ("^parallel: expected True or False", lambda: je.rts_smooth(model, result, parallel="no")),
+        ("^square_root: expected True or False, got 1", lambda: je.rts_smooth(model, result, square_root=1)),
+        ("^parallel: expected True or False", lambda: je.iterated_smooth(model, ys, prior=prior, parallel="no")),
+        ("^square_root: expected True or False", lambda: je.fit_em(model, ys, prior=prior, num_iters=1, square_root="no")),
+        ("^throw: expected True or False", lambda: je.fit_em(model, ys, prior=prior, num_iters=1, throw="no")),
+        ("^end_term: expected True or False", lambda: je.wiener_smooth(model, ys, prior=prior, end_term="no")),
+        ("^differentiable: expected True or False", lambda: je.ParticleFilter(10, differentiable="no")),
+        ("^square_root: expected True or False", lambda: je.ParallelKalmanFilter(square_root="no")),
+        ("^gain: expected None or a SteadyStateGain", lambda: je.SteadyStateKalmanFilter(gain="K")),
+        ("^excitation_window: must be a positive integer, got 0", lambda: je.DiscreteAdaptiveObserver(jnp.eye(2), jnp.eye(1), excitation_window=0)),
+        ("^excitation_threshold: must be a non-negative number", lambda: je.AdaptiveObserver(**observer, excitation_threshold=-1.0)),
+        (r"^model: its f\(x\): has shape \(1,\), expected \(2,\) for a state of size 2 \(x0\)", lambda: je.simulate(short, prior, 5, jax.random.key(0))),
+        ("^x0: expected an initial state", lambda: je.simulate(model, "x0", 5, jax.random.key(0))),
+        ("^model: expected a model with noise covariances Q and R", lambda: je.log_variances(prior)),
+        ("^loss: expected a function, got str", lambda: je.log_variance_standard_errors(model, "nll", 10)),
+        ("^result: expected a jaxest result, got str", lambda: je.raise_if_failed("result")),
+        ("^fn: expected a function, got NoneType", lambda: je.scan.associative_scan(None, jnp.ones(3))),
+        ("^fn: expected a function, got NoneType", lambda: je.vmap_minor(None)),
+    ]  # fmt: skip
+    for message, call in cases:
+        with pytest.raises(ValueError, match=message):
+            call()

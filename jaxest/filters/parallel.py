@@ -118,7 +118,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxest._checks import check_gaussian_arguments, check_gaussian_prior
+from jaxest._checks import check_flag, check_gaussian_arguments, check_gaussian_prior
 from jaxest._estimator import AbstractAssociativeEstimator
 from jaxest._status import Status, status_where
 from jaxest.filters.base import (
@@ -307,6 +307,9 @@ class ParallelKalmanFilter(AbstractAssociativeEstimator):
     square_root: bool = eqx.field(static=True, default=True)
     default_fields: ClassVar[tuple[str, ...]] = AbstractGaussianFilter.default_fields
     result_type: ClassVar[type[FilterResult]] = ParallelFilterResult
+
+    def __check_init__(self):
+        check_flag("square_root", self.square_root)
 
     @property
     def _update(self):

@@ -57,7 +57,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_gaussian_arguments, check_matrix, is_concrete
+from jaxest._checks import check_flag, check_gaussian_arguments, check_matrix, is_concrete
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._priors import Gaussian
 from jaxest._status import Status, finite_status, status_where
@@ -302,6 +302,7 @@ class ParticleFilter(AbstractEstimator):
             raise ValueError(
                 f"proposal: expected None or an AbstractProposal, got {type(proposal).__name__}"
             )
+        check_flag("differentiable", differentiable)
         self.num_particles, self.resampling = num_particles, resampling
         self.ess_threshold, self.proposal = float(ess_threshold), proposal
         self.differentiable = bool(differentiable)

@@ -149,6 +149,13 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
     gain: SteadyStateGain | None = None
     factor_type = SteadyStateFactor
 
+    def __check_init__(self):
+        if not (self.gain is None or isinstance(self.gain, SteadyStateGain)):
+            raise ValueError(
+                f"gain: expected None or a SteadyStateGain (steady_state_gain(model)), got "
+                f"{type(self.gain).__name__}"
+            )
+
     def init(self, model, prior: Gaussian) -> GaussianState:
         check_gaussian_prior(prior)
         zero = jnp.zeros((), jnp.result_type(prior.mean))

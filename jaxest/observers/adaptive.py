@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_matrix, is_concrete
+from jaxest._checks import check_matrix, check_positive_int, is_concrete
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status as check_finite_status
 from jaxest.filters.common import masked_measurement
@@ -285,6 +285,14 @@ def _check_tuning(M, Sigma, Q, R, K):
         check_matrix("R", R, spd=True, ndim=2)
 
 
+def _check_excitation(window, threshold) -> None:
+    """The excitation monitor's window (steps) and threshold (0 never flags)."""
+    check_positive_int("excitation_window", window)
+    number = isinstance(threshold, int | float | np.integer | np.floating)
+    if isinstance(threshold, bool) or not (number and 0 <= threshold < np.inf):
+        raise ValueError(f"excitation_threshold: must be a non-negative number, got {threshold!r}")
+
+
 def rk4_growth(z):
     """|R(z)| for the classical Runge-Kutta method, R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24: the
     factor by which one step of length h multiplies a mode e^{lambda t}, z = h lambda."""
@@ -370,6 +378,7 @@ class AdaptiveObserver(AbstractEstimator):
 
     def __check_init__(self):
         _check_tuning(self.M, self.Sigma, self.Q, self.R, self.K)
+        _check_excitation(self.excitation_window, self.excitation_threshold)
         if not self.dt > 0 or self.substeps < 1:
             raise ValueError(
                 f"dt: must be positive with substeps >= 1, got {self.dt}, {self.substeps}"
@@ -542,6 +551,7 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
         check_matrix("R", self.R, spd=True)
         if not 0 < self.forgetting <= 1:
             raise ValueError(f"forgetting: must be in (0, 1], got {self.forgetting}")
+        _check_excitation(self.excitation_window, self.excitation_threshold)
 
     def check_steps(self, model, first: int, count: int) -> None:
         if isinstance(model, DiscreteLTV):

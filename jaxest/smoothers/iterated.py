@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
-from jaxest._checks import check_gaussian_arguments, check_positive_int, is_concrete
+from jaxest._checks import check_flag, check_gaussian_arguments, check_positive_int, is_concrete
 from jaxest._priors import Gaussian
 from jaxest.em import kalman_smooth
 from jaxest.linalg import mv, working_precision_by_default
@@ -134,6 +134,7 @@ def iterated_smooth(
 
     Returns an :class:`IteratedSmootherResult`.
     """
+    check_flag("parallel", parallel)
     check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel)
     check_positive_int("num_iters", num_iters)
     if np.shape(ys)[0] == 0:

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_inputs, concrete_k0, first_input, model_shapes
+from jaxest._checks import check_flag, check_inputs, concrete_k0, first_input, model_shapes
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.filters.common import definiteness_status
@@ -134,6 +134,8 @@ def rts_smooth(
     results are smoothed from the Cholesky factors of their covariances.
     """
     check_smoother_arguments("rts_smooth", model, result, inputs, k0)
+    check_flag("parallel", parallel)
+    check_flag("square_root", square_root)
     if square_root:
         check_factors_saved(result)
     if parallel and not square_root:

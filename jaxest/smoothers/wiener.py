@@ -36,6 +36,7 @@ from jaxtyping import Array, Float
 
 from jaxest._checks import (
     check_complete,
+    check_flag,
     check_gaussian_prior,
     check_matrix,
     check_measurements,
@@ -239,6 +240,7 @@ def wiener_smooth(
     """
     if start not in ("arbitrary", "optimal", "eq13"):
         raise ValueError(f"start: expected 'arbitrary', 'optimal' or 'eq13', got {start!r}")
+    check_flag("end_term", end_term)
     smoother = WienerSmoother.from_model(model)
     n, m = smoother.order, model.H.shape[0]
     if jnp.ndim(ys) != 2 or jnp.shape(ys)[1] != m:
