@@ -8,6 +8,7 @@ import pytest
 
 import jaxest as je
 from jaxest.filters import SVDEKF, KalmanFilter
+from jaxest.setmembership import SetMembershipFilter
 from tests.registry import GAUSSIAN_FILTERS, NEED_POSITIVE_Q
 
 
@@ -571,6 +572,7 @@ def test_switches_functions_and_results_are_named():
         ("^end_term: expected True or False", lambda: je.wiener_smooth(model, ys, prior=prior, end_term="no")),
         ("^differentiable: expected True or False", lambda: je.ParticleFilter(10, differentiable="no")),
         ("^square_root: expected True or False", lambda: je.ParallelKalmanFilter(square_root="no")),
+        ("^recover: expected True or False", lambda: SetMembershipFilter(recover="no")),
         ("^gain: expected None or a SteadyStateGain", lambda: je.SteadyStateKalmanFilter(gain="K")),
         ("^excitation_window: must be a positive integer, got 0", lambda: je.DiscreteAdaptiveObserver(jnp.eye(2), jnp.eye(1), excitation_window=0)),
         ("^excitation_threshold: must be a non-negative number", lambda: je.AdaptiveObserver(**observer, excitation_threshold=-1.0)),

@@ -406,6 +406,11 @@ def test_bad_boxes_and_ellipsoids_are_named():
         remainder_bound(cube, jnp.zeros(2), jnp.eye(3))
     with pytest.raises(ValueError, match="^center: must be real floating point"):
         remainder_bound(cube, jnp.zeros(2, int), jnp.eye(2))
+    # a function that is not one was JAX's TypeError from inside
+    with pytest.raises(ValueError, match="^fn: expected a function, got str"):
+        remainder_bound("x**3", jnp.zeros(2), jnp.eye(2))
+    with pytest.raises(ValueError, match="^fn: expected a function, got str"):
+        hessian_interval("x**3", Interval(jnp.zeros(1), jnp.ones(1)))
 
 
 def test_reduce_sum_widens_relative_to_the_magnitude_of_the_terms():

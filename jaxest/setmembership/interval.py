@@ -33,7 +33,7 @@ from jax import lax
 from jax.extend import core as jex
 from jaxtyping import Array, Float
 
-from jaxest._checks import check_operands, is_concrete
+from jaxest._checks import check_callable, check_operands, is_concrete
 from jaxest._jaxpr import any_equation, zero_outputs
 
 #: outward widening (in ulps) of library functions that are not correctly rounded
@@ -678,6 +678,7 @@ def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
     not the jump of the first derivative there (a Dirac term of the second): a Taylor bound
     needs more (:func:`remainder_bound`).
     """
+    check_callable("fn", fn)
     if not isinstance(box, Interval) or jnp.shape(box.lo) != jnp.shape(box.hi):
         raise ValueError("box: expected an Interval(lo, hi) of two arrays of one shape")
     if is_concrete(box.lo) and is_concrete(box.hi) and np.any(np.asarray(box.lo > box.hi)):
@@ -717,6 +718,7 @@ def remainder_bound(
     bound is exactly zero, and nothing else is computed (the enclosure below is still traced,
     so a primitive without an interval rule raises as it would otherwise, and then discarded).
     """
+    check_callable("fn", fn)
     check_operands(shape, {"center": center})
     box = bounding_box(center, shape)
     hessian = _derivative_jaxpr(jax.hessian, fn, box, args)

@@ -55,6 +55,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from jaxest._checks import (
     as_array,
+    check_flag,
     check_precision,
     check_prior_arrays,
     check_sequence,
@@ -236,6 +237,7 @@ class SetMembershipFilter(AbstractEstimator):
     default_fields = ("center", "shape", "remainder", "measurement_remainder", "status")
 
     def __check_init__(self):
+        check_flag("recover", self.recover)
         if self.max_radius is not None and is_concrete(self.max_radius):
             if not (np.ndim(self.max_radius) == 0 and 0 < float(self.max_radius) < np.inf):
                 raise ValueError(f"max_radius: must be a positive number, got {self.max_radius!r}")
