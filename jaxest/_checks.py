@@ -364,6 +364,9 @@ def linear_state_dim(model: LinearGaussian, prior) -> int:
     the other two."""
     check_matrix("model.F", model.F, (None, None), square=True)
     check_matrix("model.H", model.H, (None, None))
+    for name in ("G", "Q", "R", "B", "D"):  # arrays, before the model is evaluated with them
+        if getattr(model, name) is not None:
+            as_array(f"model.{name}", getattr(model, name))
     n_F, n_H = np.shape(model.F)[-1], np.shape(model.H)[-1]
     n_prior = np.shape(getattr(prior, "mean", None))[-1:] or (None,)
     if n_F != n_H:

@@ -74,6 +74,10 @@ def test_good_arguments_pass():
             lambda m, y, p: (je.LinearGaussian(m.F.tolist(), m.H, m.Q, m.R), y, p),
             "^model.F: expected an array, got list",  # it blamed prior.mean
         ),
+        (
+            lambda m, y, p: (je.LinearGaussian(m.F, m.H, m.Q.tolist(), m.R), y, p),
+            "^model.Q: expected an array, got list",  # so did it for Q, R, G, B and D
+        ),
         (lambda m, y, p: (m, y, je.Gaussian(jnp.zeros(3), jnp.eye(3))), "prior.mean"),
         (lambda m, y, p: (m, y, (p.mean, p.cov)), "prior"),
         (
