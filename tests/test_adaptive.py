@@ -694,3 +694,37 @@ def test_smallest_eigenvalue_closed_forms():
         np.testing.assert_allclose(
             smallest_eigenvalue(jnp.asarray(W)), np.linalg.eigvalsh(W)[0], rtol=1e-5, atol=1e-6
         )
+
+
+def test_run_names_bad_arguments_before_tracing():
+    """The observers' arguments were checked only inside the trace: ys one column too wide ran
+    on, broadcast; an indefinite P ran with status OK; a missing input, a list A, a C of the
+    wrong width, a psi that is not a function or the other observer's model raised TypeErrors
+    and AttributeErrors from inside; inputs one step short, JAX's error about scan's axes."""
+    A, C = jnp.asarray([[0.0, 1.0], [-2.0, -0.5]]), jnp.asarray([[1.0, 0.0]])
+    B = jnp.asarray([[0.0], [1.0]])
+    model = ContinuousLTV(A, B, C, InputEffectiveness(B))
+    obs = AdaptiveObserver(M=jnp.eye(1), Sigma=jnp.eye(1), Q=jnp.eye(2), R=jnp.eye(1), dt=0.01)
+    prior = ObserverPrior(jnp.zeros(2), jnp.ones(1), jnp.eye(2))
+    discrete = model.discretize(0.01)
+    dobs = DiscreteAdaptiveObserver(1e-4 * jnp.eye(2), jnp.eye(1))
+    dprior = ObserverPrior(jnp.zeros(2), jnp.ones(1), jnp.eye(2), jnp.eye(1))
+    ys, us = jnp.zeros((5, 1)), jnp.ones((5, 1))
+    cases = [
+        (r"^ys: expected 1 column\(s\) \(model.C has 1 rows\), got 2", obs, model, jnp.zeros((5, 2)), us, prior),
+        ("^ys: contains", obs, model, ys.at[2].set(jnp.inf), us, prior),
+        ("^prior.P: must be positive definite", obs, model, ys, us, ObserverPrior(prior.x, prior.theta, -jnp.eye(2))),
+        ("^prior.theta_cov: must be positive definite", dobs, discrete, ys, us, ObserverPrior(prior.x, prior.theta, jnp.eye(2), -jnp.eye(1))),
+        (r"^inputs: the observer holds u_k .* shape \(T, 1\)", obs, model, ys, None, prior),
+        ("^inputs: has 4 time steps but the measurements have 5", obs, model, ys, us[:4], prior),
+        (r"^inputs: expected 1 column\(s\)", dobs, discrete, ys, jnp.ones((5, 2)), dprior),
+        ("^model.A: expected an array, got list", obs, ContinuousLTV(A.tolist(), B, C, model.psi), ys, us, prior),
+        (r"^model: its A \(2, 2\), B \(2, 1\) and C \(1, 3\) do not fit", obs, ContinuousLTV(A, B, jnp.ones((1, 3)), model.psi), ys, us, prior),
+        ("^model.psi: expected a function, got int", obs, ContinuousLTV(A, B, C, 3), ys, us, prior),
+        ("^model: expected a ContinuousLTV, got DiscreteLTV", obs, discrete, ys, us, prior),
+        ("^model: expected a DiscreteLTV, got ContinuousLTV", dobs, model, ys, us, dprior),
+    ]  # fmt: skip
+    for message, observer, model_, ys_, us_, prior_ in cases:
+        with pytest.raises(ValueError, match=message):
+            run(observer, model_, ys_, inputs=us_, prior=prior_)
+    assert int(run(dobs, discrete, ys, inputs=us, prior=dprior).any_status) == 0

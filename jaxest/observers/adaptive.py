@@ -28,6 +28,7 @@ over the observer); :func:`jaxest.tune.fit` tunes them (see :mod:`jaxest.studies
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 import equinox as eqx
@@ -36,7 +37,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_matrix, check_positive_int, is_concrete
+from jaxest._checks import (
+    as_array,
+    check_callable,
+    check_inputs,
+    check_matrix,
+    check_measurements,
+    check_positive_int,
+    check_sequence,
+    is_concrete,
+)
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._status import finite_status as check_finite_status
 from jaxest.filters.common import masked_measurement
@@ -285,6 +295,44 @@ def _check_tuning(M, Sigma, Q, R, K):
         check_matrix("R", R, spd=True, ndim=2)
 
 
+def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0) -> None:
+    """What :func:`jaxest.run` gives an observer, before it traces anything: a model of
+    ``model_type`` whose matrices (arrays or callables) fit one another at the first sample
+    ``t0`` and whose regressor is a function, ``ys`` (T, m) without +-inf, ``inputs`` (T, l),
+    held over each sample, and an :class:`ObserverPrior`. They failed inside the trace with
+    TypeErrors and AttributeErrors, or (ys of another width) ran on, broadcast."""
+    if not isinstance(model, model_type):
+        raise ValueError(f"model: expected a {model_type.__name__}, got {type(model).__name__}")
+    state, _, output, regressor = (field.name for field in dataclasses.fields(model))
+    for name in (state, "B", output):
+        if not callable(getattr(model, name)):
+            as_array(f"model.{name}", getattr(model, name))
+    check_callable(f"model.{regressor}", getattr(model, regressor))
+    S, B, C = jax.eval_shape(model.matrices, t0)
+    n = S.shape[-1]
+    matrices = len(S.shape) == len(B.shape) == len(C.shape) == 2
+    if not (matrices and S.shape == (n, n) and B.shape[0] == n and C.shape[1] == n):
+        raise ValueError(
+            f"model: its {state} {S.shape}, B {B.shape} and {output} {C.shape} do not fit one "
+            f"state (expected (n, n), (n, l) and (m, n))"
+        )
+    check_measurements(ys)
+    m = C.shape[0]
+    check_sequence("ys", ys, dim=m, dim_source=f" (model.{output} has {m} rows)")
+    if inputs is None:
+        raise ValueError(
+            f"inputs: the observer holds u_k over each sample (model.B is {B.shape}); pass "
+            f"inputs of shape (T, {B.shape[1]})"
+        )
+    T = np.shape(ys)[0]
+    check_inputs(inputs, T, f"the measurements have {T}")
+    check_sequence("inputs", inputs, dim=B.shape[1], dim_source=f" (model.B has {B.shape[1]})")
+    if not isinstance(prior, ObserverPrior):
+        raise ValueError(
+            f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
+        )
+
+
 def _check_excitation(window, threshold) -> None:
     """The excitation monitor's window (steps) and threshold (0 never flags)."""
     check_positive_int("excitation_window", window)
@@ -389,10 +437,12 @@ class AdaptiveObserver(AbstractEstimator):
         return self.t0 + k * self.dt
 
     def check(self, model, ys, inputs, prior) -> None:
-        """The fixed gain's stability (:func:`_check_fixed_gain`), before :func:`jaxest.run`
-        traces the model and the gain."""
-        if isinstance(model, ContinuousLTV):
-            _check_fixed_gain(self.K, model, self.dt, self.substeps)
+        """The arguments (:func:`_check_run_arguments`) and the fixed gain's stability
+        (:func:`_check_fixed_gain`), before :func:`jaxest.run` traces the model and the gain."""
+        _check_run_arguments(model, ContinuousLTV, ys, inputs, prior, self.t0)
+        if prior.P is not None and self.K is None:
+            check_matrix("prior.P", prior.P, spd=True)
+        _check_fixed_gain(self.K, model, self.dt, self.substeps)
 
     def init(self, model: ContinuousLTV, prior: ObserverPrior) -> AdaptiveState:
         t0 = self.t0
@@ -552,6 +602,14 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
         if not 0 < self.forgetting <= 1:
             raise ValueError(f"forgetting: must be in (0, 1], got {self.forgetting}")
         _check_excitation(self.excitation_window, self.excitation_threshold)
+
+    def check(self, model, ys, inputs, prior) -> None:
+        """The arguments (:func:`_check_run_arguments`) and the prior's covariances, before
+        :func:`jaxest.run` traces anything (``init`` checks their shapes)."""
+        _check_run_arguments(model, DiscreteLTV, ys, inputs, prior, 0)
+        for name in ("P", "theta_cov"):
+            if getattr(prior, name) is not None:
+                check_matrix(f"prior.{name}", getattr(prior, name), spd=True)
 
     def check_steps(self, model, first: int, count: int) -> None:
         if isinstance(model, DiscreteLTV):
