@@ -10,6 +10,7 @@ import scipy.integrate
 import scipy.linalg
 from jax import enable_x64
 
+import jaxest as je
 from jaxest import run
 from jaxest.observers import (
     AdaptiveObserver,
@@ -723,6 +724,8 @@ def test_run_names_bad_arguments_before_tracing():
         ("^model.psi: expected a function, got int", obs, ContinuousLTV(A, B, C, 3), ys, us, prior),
         ("^model: expected a ContinuousLTV, got DiscreteLTV", obs, discrete, ys, us, prior),
         ("^model: expected a DiscreteLTV, got ContinuousLTV", dobs, model, ys, us, dprior),
+        # the state changed dtype after one step: the protocol check's message, not the prior's
+        ("^prior: is float32, narrower than", dobs, discrete, ys, us, je.astype(dprior, jnp.float32)),
     ]  # fmt: skip
     for message, observer, model_, ys_, us_, prior_ in cases:
         with pytest.raises(ValueError, match=message):

@@ -44,6 +44,7 @@ from jaxest._checks import (
     check_matrix,
     check_measurements,
     check_positive_int,
+    check_precision,
     check_sequence,
     is_concrete,
 )
@@ -295,12 +296,13 @@ def _check_tuning(M, Sigma, Q, R, K):
         check_matrix("R", R, spd=True, ndim=2)
 
 
-def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0) -> None:
+def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0, tuning: dict) -> None:
     """What :func:`jaxest.run` gives an observer, before it traces anything: a model of
     ``model_type`` whose matrices (arrays or callables) fit one another at the first sample
     ``t0`` and whose regressor is a function, ``ys`` (T, m) without +-inf, ``inputs`` (T, l),
-    held over each sample, and an :class:`ObserverPrior`. They failed inside the trace with
-    TypeErrors and AttributeErrors, or (ys of another width) ran on, broadcast."""
+    held over each sample, and an :class:`ObserverPrior` as wide as the model, the data and the
+    observer's ``tuning`` matrices (by name). They failed inside the trace with TypeErrors and
+    AttributeErrors, or (ys of another width) ran on, broadcast."""
     if not isinstance(model, model_type):
         raise ValueError(f"model: expected a {model_type.__name__}, got {type(model).__name__}")
     state, _, output, regressor = (field.name for field in dataclasses.fields(model))
@@ -331,6 +333,8 @@ def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0) -> None
         raise ValueError(
             f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
         )
+    tuning = {name: value for name, value in tuning.items() if value is not None}
+    check_precision(model, ys, prior, inputs=inputs, **tuning)
 
 
 def _check_excitation(window, threshold) -> None:
@@ -439,7 +443,8 @@ class AdaptiveObserver(AbstractEstimator):
     def check(self, model, ys, inputs, prior) -> None:
         """The arguments (:func:`_check_run_arguments`) and the fixed gain's stability
         (:func:`_check_fixed_gain`), before :func:`jaxest.run` traces the model and the gain."""
-        _check_run_arguments(model, ContinuousLTV, ys, inputs, prior, self.t0)
+        tuning = {"M": self.M, "Sigma": self.Sigma, "Q": self.Q, "R": self.R, "K": self.K}
+        _check_run_arguments(model, ContinuousLTV, ys, inputs, prior, self.t0, tuning)
         if prior.P is not None and self.K is None:
             check_matrix("prior.P", prior.P, spd=True)
         _check_fixed_gain(self.K, model, self.dt, self.substeps)
@@ -606,7 +611,7 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
     def check(self, model, ys, inputs, prior) -> None:
         """The arguments (:func:`_check_run_arguments`) and the prior's covariances, before
         :func:`jaxest.run` traces anything (``init`` checks their shapes)."""
-        _check_run_arguments(model, DiscreteLTV, ys, inputs, prior, 0)
+        _check_run_arguments(model, DiscreteLTV, ys, inputs, prior, 0, {"Q": self.Q, "R": self.R})
         for name in ("P", "theta_cov"):
             if getattr(prior, name) is not None:
                 check_matrix(f"prior.{name}", getattr(prior, name), spd=True)
