@@ -180,6 +180,8 @@ def fit(
             raise ValueError(f"params[{path!r}]: {kind} needs a square matrix, got {P.shape}")
         _check_start(f"params[{path!r}]", P, kind)
     check_nonnegative_int("num_steps", num_steps)
+    if not (free is None or isinstance(free, dict)):
+        raise ValueError(f"free: expected a dict path -> mask, or None, got {type(free).__name__}")
     free = free or {}
     optimizer = optax.adam(0.05) if optimizer is None else optimizer
     minimiser = _is_minimiser(optimizer)

@@ -578,6 +578,8 @@ def test_switches_functions_and_results_are_named():
         ("^square_root: expected True or False", lambda: je.ParallelKalmanFilter(square_root="no")),
         ("^recover: expected True or False", lambda: SetMembershipFilter(recover="no")),
         ("^gain: expected None or a SteadyStateGain", lambda: je.SteadyStateKalmanFilter(gain="K")),
+        ("^gain: expected a SteadyStateGain", lambda: je.arma_innovation_model("K")),
+        ("^free: expected a dict path -> mask", lambda: je.fit(model, lambda m: jnp.sum(m.Q), ["Q"], free=[True])),
         ("^excitation_window: must be a positive integer, got 0", lambda: je.DiscreteAdaptiveObserver(jnp.eye(2), jnp.eye(1), excitation_window=0)),
         ("^excitation_threshold: must be a non-negative number", lambda: je.AdaptiveObserver(**observer, excitation_threshold=-1.0)),
         (r"^model: its f\(x\): has shape \(1,\), expected \(2,\) for a state of size 2 \(x0\)", lambda: je.simulate(short, prior, 5, jax.random.key(0))),

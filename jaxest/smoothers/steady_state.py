@@ -54,10 +54,18 @@ def characteristic_polynomial(M: Float[Array, "n n"]):
     return jnp.stack(coeffs), jnp.stack(adj)
 
 
-@eqx.filter_jit
 def arma_innovation_model(gain: SteadyStateGain) -> ArmaInnovationModel:
     """Eq 7: Psi = det(I - Psi_f q^-1), D = Psi I_m, A = D - H Phi adj(I - Psi_f q^-1) K q^-1.
     Compiled as one program (docs/performance.md, "First calls outside jit")."""
+    if not isinstance(gain, SteadyStateGain):
+        raise ValueError(
+            f"gain: expected a SteadyStateGain (steady_state_gain(model)), got {type(gain).__name__}"
+        )
+    return _arma_innovation_model(gain)
+
+
+@eqx.filter_jit
+def _arma_innovation_model(gain: SteadyStateGain) -> ArmaInnovationModel:
     psi, adj = characteristic_polynomial(gain.Psi_f)
     m = gain.H.shape[0]
     eye = jnp.eye(m, dtype=psi.dtype)
