@@ -361,7 +361,8 @@ def check_precision(model, ys, prior, *, name: str = "prior", **updated_with) ->
 
 def linear_state_dim(model: LinearGaussian, prior) -> int:
     """n of a linear model, blaming whichever of model.F, model.H and the prior disagrees with
-    the other two."""
+    the other two; every matrix of the model an array (a list Q was blamed on prior.mean, where
+    the model could not be evaluated)."""
     check_matrix("model.F", model.F, (None, None), square=True)
     check_matrix("model.H", model.H, (None, None))
     for name in ("G", "Q", "R", "B", "D"):  # arrays, before the model is evaluated with them

@@ -33,9 +33,9 @@ class SaveAt(eqx.Module):
     """What :func:`run` keeps of each step's output.
 
     ``fields``: the output fields stacked over time, a name or a sequence of names (``None``:
-    the estimator's defaults; ``()``:
-    none -- the result then holds the final state, ``any_status`` and what the state accumulates,
-    e.g. a Gaussian filter's total log-likelihood). ``fn``: a function of each step's output
+    the estimator's defaults; ``()``: none -- the result then holds the final state,
+    ``any_status`` and what the state accumulates, e.g. a Gaussian filter's total
+    log-likelihood). ``fn``: a function of each step's output
     whose values are stacked into ``result.saved`` (e.g. ``lambda out: out.mean[:2]``).
     """
 

@@ -724,7 +724,7 @@ def test_run_names_bad_arguments_before_tracing():
         ("^model.psi: expected a function, got int", obs, ContinuousLTV(A, B, C, 3), ys, us, prior),
         ("^model: expected a ContinuousLTV, got DiscreteLTV", obs, discrete, ys, us, prior),
         ("^model: expected a DiscreteLTV, got ContinuousLTV", dobs, model, ys, us, dprior),
-        # the state changed dtype after one step: the protocol check's message, not the prior's
+        # named only by the protocol check before, as a state that changed dtype after one step
         ("^prior: is float32, narrower than", dobs, discrete, ys, us, je.astype(dprior, jnp.float32)),
     ]  # fmt: skip
     for message, observer, model_, ys_, us_, prior_ in cases:

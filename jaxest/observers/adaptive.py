@@ -28,7 +28,6 @@ over the observer); :func:`jaxest.tune.fit` tunes them (see :mod:`jaxest.studies
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Callable
 
 import equinox as eqx
@@ -305,7 +304,9 @@ def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0, tuning:
     AttributeErrors, or (ys of another width) ran on, broadcast."""
     if not isinstance(model, model_type):
         raise ValueError(f"model: expected a {model_type.__name__}, got {type(model).__name__}")
-    state, _, output, regressor = (field.name for field in dataclasses.fields(model))
+    state, output, regressor = (
+        ("A", "C", "psi") if model_type is ContinuousLTV else ("F", "H", "phi")
+    )
     for name in (state, "B", output):
         if not callable(getattr(model, name)):
             as_array(f"model.{name}", getattr(model, name))
@@ -329,12 +330,16 @@ def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0, tuning:
     T = np.shape(ys)[0]
     check_inputs(inputs, T, f"the measurements have {T}")
     check_sequence("inputs", inputs, dim=B.shape[1], dim_source=f" (model.B has {B.shape[1]})")
+    _check_prior_type(prior)
+    tuning = {name: value for name, value in tuning.items() if value is not None}
+    check_precision(model, ys, prior, inputs=inputs, **tuning)
+
+
+def _check_prior_type(prior) -> None:
     if not isinstance(prior, ObserverPrior):
         raise ValueError(
             f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
         )
-    tuning = {name: value for name, value in tuning.items() if value is not None}
-    check_precision(model, ys, prior, inputs=inputs, **tuning)
 
 
 def _check_excitation(window, threshold) -> None:
@@ -451,10 +456,7 @@ class AdaptiveObserver(AbstractEstimator):
 
     def init(self, model: ContinuousLTV, prior: ObserverPrior) -> AdaptiveState:
         t0 = self.t0
-        if not isinstance(prior, ObserverPrior):
-            raise ValueError(
-                f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
-            )
+        _check_prior_type(prior)
         A, B, C = model.matrices(t0)
         n, m = A.shape[-1], C.shape[-2]
         dtype = jnp.result_type(prior.x)
