@@ -270,11 +270,13 @@ def check_step_protocol(estimator, model, ys, inputs, prior, state, key, error) 
 def raise_if_failed(result: AbstractResult):
     """``result``, raising (``eqx.error_if``, works under ``jit``) if its status is not OK.
 
-    The message lists what each of the family's flags (``type(result).flags``) means.
+    The message lists what each of the family's flags (``result.flags``) means. Every jaxest
+    result with a status is taken: an estimator's, a smoother's, EM's, ``fit``'s, a Riccati
+    solution, a simulation.
     """
-    if not (hasattr(type(result), "flags") and hasattr(result, "any_status")):  # EMResult too
+    if not (hasattr(result, "flags") and hasattr(result, "any_status")):
         raise ValueError(f"result: expected a jaxest result, got {type(result).__name__}")
-    flags = type(result).flags
+    flags = result.flags
     message = "a step's status is not OK; result.any_status has the flags. " + "; ".join(
         flags.explain(flag) for flag in flags if flag.value
     )

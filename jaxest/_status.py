@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import enum
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Int
 
 
 class StatusFlag(enum.IntFlag):
@@ -78,3 +81,43 @@ def finite_status(*arrays) -> jnp.ndarray:
     """``Status.NONFINITE`` if any entry of ``arrays`` is not finite, else 0."""
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in arrays]))
     return status_where(~finite, Status.NONFINITE)
+
+
+class StatusOverSteps(eqx.Module):
+    """What :class:`~jaxest.AbstractResult` gives an estimator's result, for a result that
+    always keeps its ``status`` with one entry per step (or iteration) on the last axis: a
+    smoother's, a simulation's, EM's. ``any_status`` is the flags OR'ed over the steps and
+    ``ok`` whether they are all OK, per run under ``vmap``; ``flags``, the family that names the
+    bits (``flags.describe(result.any_status)``), so :func:`~jaxest.raise_if_failed` takes it.
+
+    The subclass declares ``status``: declared here, as an abstract field, it would come first
+    among the subclass's constructor arguments."""
+
+    flags = Status  #: the family of ``status``'s bits; a subclass sets its own
+
+    @property
+    def any_status(self) -> Int[Array, "*runs"]:
+        """The flags of every step, OR'ed."""
+        return jnp.bitwise_or.reduce(self.status, axis=-1)
+
+    @property
+    def ok(self) -> jax.Array:
+        """True where every step finished with status OK."""
+        return self.any_status == 0
+
+
+class StatusOfOne(eqx.Module):
+    """The same for a result with one ``status`` for the whole computation (``fit``'s, a
+    Riccati solution's): ``any_status`` is that status, per solution under ``vmap``."""
+
+    flags = Status  #: the family of ``status``'s bits; a subclass sets its own
+
+    @property
+    def any_status(self) -> Int[Array, "*runs"]:
+        """The status (one computation: nothing to OR)."""
+        return self.status
+
+    @property
+    def ok(self) -> jax.Array:
+        """True where the status is OK."""
+        return self.status == 0

@@ -68,7 +68,7 @@ from jaxest._checks import (
 )
 from jaxest._priors import Gaussian
 from jaxest._run import SaveAt, raise_if_failed, run
-from jaxest._status import finite_status, status_where
+from jaxest._status import StatusOverSteps, finite_status, status_where
 from jaxest.filters.kalman import KalmanFilter
 from jaxest.filters.parallel import ParallelKalmanFilter, ParallelStatus
 from jaxest.filters.sqrt_kf import SquareRootKF
@@ -107,7 +107,7 @@ EMStatus = ParallelStatus.extend(
 filter's) and EM's own (module docstring)."""
 
 
-class EMResult(eqx.Module):
+class EMResult(StatusOverSteps):
     """The fitted model and prior; ``logliks[i]``: log p(y) before the i-th M-step;
     ``status[i]``: the :data:`EMStatus` flags of iteration i, from its E-step (the filter and
     smoother at the parameters of ``logliks[i]``), from the parameters its M-step fitted, and
@@ -120,16 +120,6 @@ class EMResult(eqx.Module):
     prior: Gaussian
     logliks: Float[Array, " num_iters"]
     status: Int[Array, " num_iters"]
-
-    @property
-    def any_status(self) -> Int[Array, ""]:
-        """The flags of every iteration, OR'ed."""
-        return jnp.bitwise_or.reduce(self.status, axis=-1)
-
-    @property
-    def ok(self) -> jax.Array:
-        """True where every iteration finished with status OK."""
-        return self.any_status == 0
 
 
 class Moments(eqx.Module):

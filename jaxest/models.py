@@ -31,7 +31,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest._priors import Gaussian
-from jaxest._status import finite_status
+from jaxest._status import StatusOverSteps, finite_status
 from jaxest.linalg import (
     after,
     factor_psd_or_nan,
@@ -245,7 +245,7 @@ class NonlinearGaussian(AbstractGaussianModel):
         return super().sample_transition(x, u, k, w)
 
 
-class Simulation(eqx.Module):
+class Simulation(StatusOverSteps):
     """Output of :func:`simulate`: true states x_0..x_{T-1}, measurements y_0..y_{T-1}, and each
     step's :class:`~jaxest.Status` bits: ``NONFINITE`` where the state or the measurement drawn
     is NaN or infinite. Under ``jit`` the argument checks cannot see a covariance's values, and
@@ -259,11 +259,6 @@ class Simulation(eqx.Module):
     @property
     def y(self):
         return self.observations
-
-    @property
-    def ok(self) -> jax.Array:
-        """Whether every step drew finite values."""
-        return jnp.all(self.status == 0)
 
 
 def gaussian_noise(key, cov):

@@ -71,7 +71,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_matrix, is_concrete
-from jaxest._status import Status, status_where
+from jaxest._status import Status, StatusOfOne, status_where
 from jaxest.linalg import (
     cho_solve_lower,
     cholesky,
@@ -116,7 +116,7 @@ RiccatiStatus = Status.extend(
 """The Riccati solvers' status flags: the core's and their own."""
 
 
-class RiccatiSolution(eqx.Module):
+class RiccatiSolution(StatusOfOne):
     """The solution of an algebraic Riccati equation and how far to trust it.
 
     ``X`` the stabilising solution; ``K`` its gain (control forms: u = -K x with closed loop
@@ -137,11 +137,6 @@ class RiccatiSolution(eqx.Module):
     status: Int[Array, ""]
     residual: Float[Array, ""]
     margin: Float[Array, ""]
-
-    @property
-    def ok(self) -> jax.Array:
-        """True where the status is OK."""
-        return self.status == 0
 
 
 # --------------------------------------------------------------------------- iterations

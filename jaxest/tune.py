@@ -34,7 +34,7 @@ from jaxest._checks import (
     is_concrete,
 )
 from jaxest._run import SaveAt, check_estimator, run
-from jaxest._status import finite_status
+from jaxest._status import StatusOfOne, finite_status
 
 if TYPE_CHECKING:
     import optimistix as optx
@@ -90,7 +90,7 @@ def from_unconstrained(theta, parametrisation: str):
     raise _unknown(parametrisation)
 
 
-class FitResult(eqx.Module):
+class FitResult(StatusOfOne):
     """The fitted model and the loss of the iterate at each optimiser step: the point an optax
     step starts from, the last point an optimistix minimiser accepted after its step (its first
     step evaluates the start). Either way ``losses[0]`` is the starting loss.

@@ -306,6 +306,38 @@ def test_status_flags_extend_per_family():
         je.Status.extend("Clash", STUCK=(2, "taken"))
 
 
+def test_every_result_with_a_status_answers_as_an_estimators_does():
+    """A smoother's, a simulation's, EM's, ``fit``'s and a Riccati solution's result have
+    ``any_status`` (the steps' flags OR'ed), ``ok`` and ``flags`` as an estimator's result has,
+    so ``raise_if_failed`` takes each (it refused them as not a jaxest result); a smoother's
+    flags are its filter's family, whose bits its status carries."""
+    model, ys = linear_problem(T=20)
+    parallel = je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR)
+    Q = model.G @ model.Q @ model.G.T
+    plain = je.LinearGaussian(model.F, model.H, Q + 1e-3 * jnp.eye(2), model.R)  # G = I, for EM
+    results = {
+        "simulation": je.simulate(model, PRIOR, 20, jax.random.PRNGKey(0)),
+        "smoother": je.rts_smooth(model, parallel),
+        "iterated smoother": je.iterated_smooth(model, ys, prior=PRIOR, num_iters=2),
+        "steady-state smoother": je.steady_state_smooth(model, ys, prior=PRIOR),
+        "EM": je.fit_em(plain, ys, prior=PRIOR, num_iters=2),
+        "fit": je.fit(model, je.neg_loglik(je.KalmanFilter(), ys[None], prior=PRIOR), num_steps=2),
+        "Riccati": je.solve_filter_dare(model.F, model.H, Q, model.R),
+    }
+    assert results["smoother"].flags is je.ParallelStatus is results["iterated smoother"].flags
+    assert results["EM"].flags is je.EMStatus and results["Riccati"].flags is je.RiccatiStatus
+    for name, result in results.items():
+        steps = jnp.atleast_1d(result.status)
+        assert int(result.any_status) == int(np.bitwise_or.reduce(np.asarray(steps))) == 0, name
+        assert bool(result.ok) and isinstance(je.raise_if_failed(result), type(result)), name
+        flag = max(result.flags)  # the family's own bit where it has one
+        where = (lambda r: r.smoothed.status) if name == "iterated smoother" else None
+        flagged = eqx.tree_at(where or (lambda r: r.status), result, replace_fn=lambda s: s | flag)
+        assert int(flagged.any_status) == flag and not bool(flagged.ok), name
+        with pytest.raises(Exception, match=flag.name):
+            je.raise_if_failed(flagged)
+
+
 @pytest.mark.parametrize("dtype, rtol", [(jnp.float64, 1e-12), (jnp.float32, 1e-5)])
 def test_checkpoint_stores_less_and_changes_no_value_or_gradient(dtype, rtol):
     """``checkpoint=True`` recomputes each step in the reverse pass: the same loss and gradient

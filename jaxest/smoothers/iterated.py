@@ -33,11 +33,13 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_flag, check_gaussian_arguments, check_positive_int, is_concrete
 from jaxest._priors import Gaussian
+from jaxest._status import Status, StatusFlag
 from jaxest.em import kalman_smooth
+from jaxest.filters.parallel import ParallelStatus
 from jaxest.linalg import mv, working_precision_by_default
 from jaxest.models import AbstractGaussianModel, LinearGaussian
 from jaxest.smoothers.rts import SmootherResult
@@ -62,9 +64,23 @@ class IteratedSmootherResult(eqx.Module):
         return self.smoothed.cov
 
     @property
+    def status(self) -> Int[Array, " T"]:
+        """The last filter's and smoother's flags per step (``smoothed.status``)."""
+        return self.smoothed.status
+
+    @property
+    def any_status(self) -> Int[Array, ""]:
+        return self.smoothed.any_status
+
+    @property
     def ok(self) -> jax.Array:
         """True where every step of the last filter and smoother finished with status OK."""
         return self.smoothed.ok
+
+    @property
+    def flags(self) -> type[StatusFlag]:
+        """The family of ``status``'s bits (``smoothed.flags``)."""
+        return self.smoothed.flags
 
 
 def linearise(model: AbstractGaussianModel, trajectory, inputs) -> LinearGaussian:
@@ -99,6 +115,7 @@ def _iterated_smooth(model, ys, prior, inputs, initial, num_iters: int, parallel
     start = SmootherResult(
         initial, jnp.zeros((T, n, n), initial.dtype), jnp.zeros(T, jnp.int32),
         jnp.zeros((T - 1, n, n), initial.dtype),
+        ParallelStatus if parallel else Status,  # the family of kalman_smooth's filter
     )  # fmt: skip
     zero = jnp.zeros((), initial.dtype)
     (smoothed, loglik), changes = jax.lax.scan(body, (start, zero), None, length=num_iters)

@@ -87,7 +87,7 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None, k0=0):
     status = jax.vmap(finite_status)(suffixes.g, suffixes.L)
     status = status | jax.vmap(definiteness_status)(suffixes.L)
     cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
-    return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross)
+    return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross, result.flags)
 
 
 __all__ = ["parallel_rts_smooth", "smoother_gains"]

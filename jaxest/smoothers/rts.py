@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_flag, check_inputs, concrete_k0, first_input, model_shapes
-from jaxest._status import finite_status
+from jaxest._status import Status, StatusFlag, StatusOverSteps, finite_status
 from jaxest.filters.base import FilterResult
 from jaxest.filters.common import definiteness_status
 from jaxest.linalg import (
@@ -31,7 +31,7 @@ from jaxest.linalg import (
 from jaxest.models import check_inputs_used, check_time_axes
 
 
-class SmootherResult(eqx.Module):
+class SmootherResult(StatusOverSteps):
     """Smoothed means x(k|T), covariances P(k|T), status bits per step, and the lag-one cross
     covariances P(k+1,k|T) = Cov(x_{k+1}, x_k | y_0..y_{T-1}) = P(k+1|T) C_k^T, k = 0..T-2
     (Shumway & Stoffer, Time Series Analysis, Property 6.3), which with the means and
@@ -41,17 +41,15 @@ class SmootherResult(eqx.Module):
     ``NOT_POSITIVE_DEFINITE`` where P(k|T) has no Cholesky factor. The backward pass forms
     P(k|T) by a difference, P(k|k) + C_k (P(k+1|T) - P(k+1|k)) C_k^T, which in float32 can
     lose P(k|T) where it is far below P(k+1|k) even after an accurate (square-root) filter
-    (docs/robustness.md); ``rts_smooth(..., square_root=True)`` does not."""
+    (docs/robustness.md); ``rts_smooth(..., square_root=True)`` does not. ``flags`` is the
+    filter's family (``ParallelStatus`` after a :class:`~jaxest.ParallelKalmanFilter`), whose
+    bits ``status`` carries; ``any_status`` and ``ok`` summarise it over the steps."""
 
     mean: Float[Array, "T n"]
     cov: Float[Array, "T n n"]
     status: Int[Array, " T"]
     cross_cov: Float[Array, "T-1 n n"]
-
-    @property
-    def ok(self) -> jax.Array:
-        """True where every step of the filter and of the smoother finished with status OK."""
-        return jnp.all(self.status == 0, axis=-1)
+    flags: type[StatusFlag] = eqx.field(static=True, default=Status)
 
 
 NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
@@ -221,4 +219,5 @@ def backward_pass(result: FilterResult, inputs, cross_covariance, k0=0) -> Smoot
         jnp.concatenate([covs, last[1][None]]),
         jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
         cross,
+        result.flags,
     )

@@ -139,6 +139,7 @@ def square_root_backward_pass(model, result: FilterResult, inputs, k0=0) -> Smoo
         jnp.concatenate([covs, last_cov[None]]),
         jnp.concatenate([status, finite_status(last[1])[None]]) | result.status,
         cross,
+        result.flags,
     )
 
 
@@ -225,4 +226,4 @@ def parallel_square_root_rts_smooth(model, result: FilterResult, inputs, k0) -> 
     roots = after(filtered_square_roots(result), result)  # no batched QR beside the filter's
     means, covs, cross = parallel_square_root_pass(model, result.mean, roots, inputs, k0)
     status = jax.vmap(finite_status)(means, covs)
-    return SmootherResult(means, covs, status | result.status, cross)
+    return SmootherResult(means, covs, status | result.status, cross, result.flags)

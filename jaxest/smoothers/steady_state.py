@@ -24,6 +24,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._priors import Gaussian
 from jaxest._run import run
+from jaxest._status import StatusOverSteps
 from jaxest.filters.steady_state import SteadyStateGain, SteadyStateKalmanFilter, steady_state_gain
 from jaxest.linalg import working_precision_by_default
 from jaxest.models import LinearGaussian
@@ -115,7 +116,7 @@ def backward_gain_sum(
     return jnp.concatenate([S, end[None]]) @ gain.Sigma.T
 
 
-class SteadyStateSmootherResult(eqx.Module):
+class SteadyStateSmootherResult(StatusOverSteps):
     """x(t|N), x(t|t) and eps(t) for t = 0..N (eq 15), and the steady-state filter's
     :class:`~jaxest.Status` bits per step (``NONFINITE`` where the gain has no accurate
     solution: :func:`~jaxest.filters.steady_state.steady_state_gain` gives NaN then)."""
