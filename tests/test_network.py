@@ -14,7 +14,7 @@ import scipy.integrate
 import scipy.linalg
 from jax import enable_x64
 
-from jaxest import Gaussian, run
+from jaxest import Gaussian, raise_if_failed, run
 from jaxest.network import (
     CommunicationStructure,
     LargeScaleSystem,
@@ -321,6 +321,10 @@ def test_uncoupled_nodes_are_kalman_bucy_filters():
         for i in range(3):
             off[2 * i : 2 * i + 2, 2 * i : 2 * i + 2] = 0
         assert np.abs(off).max() < 1e-10
+        assert bool(ss.ok) and ss.flags is NetworkDesignStatus  # as every result with a status
+        raise_if_failed(ss)
+        with pytest.raises(Exception, match="NO_FILTER"):
+            raise_if_failed(eqx.tree_at(lambda s: s.status, ss, NetworkDesignStatus.NO_FILTER))
 
 
 @eqx.filter_jit

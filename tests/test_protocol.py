@@ -309,7 +309,8 @@ def test_status_flags_extend_per_family():
 def test_every_result_with_a_status_answers_as_an_estimators_does():
     """A smoother's, a simulation's, EM's, ``fit``'s and a Riccati solution's result have
     ``any_status`` (the steps' flags OR'ed), ``ok`` and ``flags`` as an estimator's result has,
-    so ``raise_if_failed`` takes each (it refused them as not a jaxest result); a smoother's
+    so ``raise_if_failed`` takes each (it refused them as not a jaxest result; the network
+    filter's designs are checked in test_network); a smoother's
     flags are its filter's family, whose bits its status carries."""
     model, ys = linear_problem(T=20)
     parallel = je.run(je.ParallelKalmanFilter(), model, ys, prior=PRIOR)
@@ -323,6 +324,7 @@ def test_every_result_with_a_status_answers_as_an_estimators_does():
         "EM": je.fit_em(plain, ys, prior=PRIOR, num_iters=2),
         "fit": je.fit(model, je.neg_loglik(je.KalmanFilter(), ys[None], prior=PRIOR), num_steps=2),
         "Riccati": je.solve_filter_dare(model.F, model.H, Q, model.R),
+        "steady-state gain": je.steady_state_gain(plain),
     }
     assert results["smoother"].flags is je.ParallelStatus is results["iterated smoother"].flags
     assert results["EM"].flags is je.EMStatus and results["Riccati"].flags is je.RiccatiStatus

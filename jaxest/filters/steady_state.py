@@ -22,7 +22,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_complete, check_gaussian_prior
 from jaxest._priors import Gaussian
-from jaxest._status import finite_status
+from jaxest._status import StatusOfOne, finite_status
 from jaxest.filters.base import (
     AbstractCovarianceFactor,
     AbstractGaussianFilter,
@@ -36,7 +36,7 @@ from jaxest.models import LinearGaussian
 from jaxest.riccati import RiccatiStatus, solve_filter_dare
 
 
-class SteadyStateGain(eqx.Module):
+class SteadyStateGain(StatusOfOne):
     """Lemma 1: the steady state of the Kalman filter of a time-invariant linear model, and the
     :class:`~jaxest.RiccatiStatus` of the Riccati solution it comes from (NaN Sigma, K and
     Q_eps where that is not OK, which only happens under ``jit``: outside it
@@ -51,11 +51,6 @@ class SteadyStateGain(eqx.Module):
     K: Float[Array, "n m"]  #: filter gain, eq 4
     innovation_cov: Float[Array, "m m"]  #: Q_eps = H Sigma H^T + R
     status: Int[Array, ""]  #: the Riccati solution's status bits (0 = OK)
-
-    @property
-    def ok(self) -> jax.Array:
-        """True where the Riccati solution's status is OK."""
-        return self.status == 0
 
     @property
     def Psi_f(self) -> Float[Array, "n n"]:

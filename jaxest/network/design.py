@@ -35,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_matrix, is_concrete
-from jaxest._status import Status, finite_status, status_where
+from jaxest._status import Status, StatusOfOne, finite_status, status_where
 from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.network.structure import (
     CommunicationStructure,
@@ -250,7 +250,7 @@ def design_status(pieces, *arrays) -> Int[Array, ""]:
     return finite_status(*arrays) | status_where(no_filter, NetworkDesignStatus.NO_FILTER)
 
 
-class NetworkDesign(eqx.Module):
+class NetworkDesign(StatusOfOne):
     """The designed filter on a time grid: ``ts`` (K,), gains G_i(t_k) (K, N, n, q), node costs
     tr(S_i P_i(t_k)) (K, N), the joint error covariance at the last time (Nn, Nn) and the
     status (:data:`NetworkDesignStatus`)."""
@@ -260,6 +260,8 @@ class NetworkDesign(eqx.Module):
     costs: Float[Array, "K N"]
     final_cov: Float[Array, "Nn Nn"]
     status: Int[Array, ""]
+
+    flags = NetworkDesignStatus
 
     @property
     def J(self) -> Float[Array, " K"]:
@@ -336,7 +338,7 @@ def _design(system, structure, cov0, ts, S, max_steps):
     return NetworkDesign(ts, gains, costs, covs[-1], design_status(pieces, gains, costs))
 
 
-class SteadyState(eqx.Module):
+class SteadyState(StatusOfOne):
     """Steady state of eqs 28-31 for a constant system: joint covariance P, gains G_i, node costs
     tr(S_i P_i), the time it took to settle, the norm of P' there and the status
     (:data:`NetworkDesignStatus`)."""
@@ -347,6 +349,8 @@ class SteadyState(eqx.Module):
     settle_time: Float[Array, ""]
     rate_norm: Float[Array, ""]
     status: Int[Array, ""]
+
+    flags = NetworkDesignStatus
 
     @property
     def J(self):
