@@ -100,6 +100,12 @@ def factor_tangent_to_cov(U, D, dU, dD):
     return half + half.T
 
 
+def tangent_or_zeros(tangent, primal):
+    """``tangent``, or zeros shaped as ``primal`` where it is ``None``: the tangent of an
+    argument ``eqx.filter_custom_jvp`` was not asked to differentiate."""
+    return jnp.zeros_like(primal) if tangent is None else tangent
+
+
 def root_tangent_to_cov(L, dL):
     """The covariance tangent dP = dL L^T + L dL^T of P = L L^T (any leading axes; ``dL`` None
     for a zero tangent), in ``jnp.matmul``, which reverse mode can transpose where ``dL`` is

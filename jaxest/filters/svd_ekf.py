@@ -50,6 +50,7 @@ from jaxest.linalg import (
     right_svd,
     solve_triangular,
     symmetrize,
+    tangent_or_zeros,
 )
 
 #: the Joseph form's rounding (:func:`gain_rounding`) is flagged from the size of the posterior's
@@ -180,18 +181,19 @@ def _factored_step_jvp(primals, tangents, *, primal):
     )
     U_next, D_next, U_post, D_post = keep_factors(U_next, D_next, U_post, D_post)
     out = x_next, U_next, D_next, (x_post, U_post, D_post, e, S, loglik, diagnostic)
-    zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
-    dP = factor_tangent_to_cov(U, D, zeros(t_U, U), zeros(t_D, D))
+    dP = factor_tangent_to_cov(U, D, tangent_or_zeros(t_U, U), tangent_or_zeros(t_D, D))
     ref = lambda model, x, P, y, u: covariance_step(model, x, P, y, u, k)
     _, (dx_next, dP_next, d_outputs) = eqx.filter_jvp(
-        ref, (model, x, cov_from_factor(U, D), y, u), (t_model, zeros(t_x, x), dP, t_y, t_u)
+        ref,
+        (model, x, cov_from_factor(U, D), y, u),
+        (t_model, tangent_or_zeros(t_x, x), dP, t_y, t_u),
     )
     dU_next, dD_next = cov_tangent_to_factor(U_next, D_next, symmetrize(dP_next))
     dx_post, dP_post, de, dS, dloglik = d_outputs
     dU_post, dD_post = cov_tangent_to_factor(U_post, D_post, symmetrize(dP_post))
     d_outputs = (dx_post, dU_post, dD_post, de, dS, dloglik, None)  # no derivative
     d_outputs = jax.tree.map(
-        zeros,
+        tangent_or_zeros,
         d_outputs,
         (x_post, U_post, D_post, e, S, loglik, diagnostic),
         is_leaf=lambda t: t is None,

@@ -53,6 +53,7 @@ from jaxest.linalg import (
     mv,
     root_tangent_to_cov,
     solve_triangular,
+    tangent_or_zeros,
     tria,
 )
 from jaxest.models import psd_root
@@ -104,13 +105,12 @@ def _square_root_step_jvp(primals, tangents):
     model, k, u, mean, root, mean_next, root_next = primals
     t_model, _, t_u, t_mean, t_root, t_mean_next, t_root_next = tangents
     out = square_root_step(*primals)
-    zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     gram = lambda L: mm(L, L.T)
     reference = lambda model, u, *arrays: covariance_backward_step(model, k, u, *arrays)
     primal_in = (mean, gram(root), mean_next, gram(root_next))
     tangent_in = (
-        zeros(t_mean, mean), root_tangent_to_cov(root, t_root),
-        zeros(t_mean_next, mean_next), root_tangent_to_cov(root_next, t_root_next),
+        tangent_or_zeros(t_mean, mean), root_tangent_to_cov(root, t_root),
+        tangent_or_zeros(t_mean_next, mean_next), root_tangent_to_cov(root_next, t_root_next),
     )  # fmt: skip
     _, (d_mean_s, d_cov_s, d_cross) = eqx.filter_jvp(
         reference, (model, u, *primal_in), (t_model, t_u, *tangent_in)
@@ -207,7 +207,6 @@ def _parallel_square_root_pass_jvp(primals, tangents):
     model, means, roots, inputs, k0 = primals
     t_model, t_means, t_roots, t_inputs, _ = tangents
     out = parallel_square_root_pass(*primals)
-    zeros = lambda t, p: jnp.zeros_like(p) if t is None else t
     grams = roots @ jnp.swapaxes(roots, -1, -2)
     d_grams = root_tangent_to_cov(roots, t_roots)
     reference = lambda model, means, covs, inputs: parallel_covariance_pass(
@@ -216,7 +215,7 @@ def _parallel_square_root_pass_jvp(primals, tangents):
     _, d_out = eqx.filter_jvp(
         reference,
         (model, means, grams, inputs),
-        (t_model, zeros(t_means, means), d_grams, t_inputs),
+        (t_model, tangent_or_zeros(t_means, means), d_grams, t_inputs),
     )
     return out, d_out
 
