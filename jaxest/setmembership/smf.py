@@ -24,8 +24,11 @@ What happens in the failure modes (each reported in ``status``):
   step whose filtered set went bad (one step later when only the prediction did).
 - **Unknown remainder bound** (``Status.NONFINITE``): a remainder bound that is NaN (f or h
   evaluated outside its domain over the set, e.g. ``log`` or ``arcsin`` of an interval wholly
-  outside theirs, or a closed form that failed) bounds nothing. A measurement row with one is
-  skipped, so the set stays guaranteed; f's makes the predicted set unbounded.
+  outside theirs, or a closed form that failed) or infinite (an enclosure without bound, such as
+  that of the derivative of ``jnp.max`` of a vector over a set where two entries may tie)
+  bounds nothing. A measurement row with one is skipped, so the set stays guaranteed, and
+  flagged (an infinite bound of h's had been used as a strip of infinite width, with status
+  OK); f's makes the predicted set unbounded.
 - **Recovery** (``Status.RECOVERED``, eqs R1-R3 of docs/papers/smf.md): the flag stays set until a
   step whose observed measurement rows alone guarantee a bounded set: h affine in x (its remainder
   bound over the whole space is exactly zero) and the rows constrain every direction (rank n,
@@ -275,8 +278,9 @@ class SetMembershipFilter(AbstractEstimator):
         half_widths = model.measurement_bound + alpha  # eq 21
         new_center, new_shape, empty = center, shape, jnp.zeros((), bool)
         for i in range(H.shape[0]):
-            # a row with a NaN remainder bound bounds nothing: skipped (``step`` flags it)
-            observed = jnp.isfinite(y[i]) & ~jnp.isnan(half_widths[i])
+            # a row with a NaN or infinite remainder bound bounds nothing: skipped (``step``
+            # flags it)
+            observed = jnp.isfinite(y[i]) & jnp.isfinite(half_widths[i])
             # an infinite reading lies in no strip of finite half-width around a finite h(x)
             impossible = jnp.isinf(y[i]) & jnp.isfinite(half_widths[i])
             z = jnp.where(observed, y[i], 0.0) - h_c[i] + H[i] @ center  # eq 24
@@ -372,11 +376,11 @@ class SetMembershipFilter(AbstractEstimator):
         )
         everything = whole_space(P.shape[-1], P.dtype)
         ill = ~lost & ~(conditioned & conditioned_next)
-        # a NaN remainder bound bounds nothing: its measurement row was skipped
+        # a NaN or infinite remainder bound bounds nothing: its measurement row was skipped
         # (measurement_update; the set stays guaranteed) or the predicted set is lost
         # (UNBOUNDED), and the step says why
-        unknown_remainder = (~lost & jnp.any(~jnp.isnan(y) & jnp.isnan(alpha_h))) | (
-            ~unbounded & jnp.any(jnp.isnan(alpha_f))
+        unknown_remainder = (~lost & jnp.any(~jnp.isnan(y) & ~jnp.isfinite(alpha_h))) | (
+            ~unbounded & jnp.any(~jnp.isfinite(alpha_f))
         )
         status = (
             jnp.where(empty, Status.EMPTY_SET, 0)
