@@ -195,14 +195,33 @@ def _sampled_remainders(fn, center, shape, rng, count=20000):
         ("max of two", lambda x: jnp.maximum(x[:1] ** 2, 2 * x[1:]), [0.5, 0.2]),
         ("hypot", lambda x: jnp.hypot(x[:1], x[1:]), [1.0, 0.5]),
         ("softplus", lambda x: jax.nn.softplus(3 * x), [0.0, 0.1]),
+        (
+            "max of a vector",
+            lambda x: jnp.max(jnp.stack([x[0] ** 2, 2 * x[1], x[0] + x[1]]))[None],
+            [0.5, 0.2],
+        ),
+        ("infinity norm", lambda x: jnp.linalg.norm(x, ord=jnp.inf)[None], [0.1, -0.05]),
+        ("min over an axis", lambda x: jnp.min(jnp.outer(x, x + 1.0), axis=1), [0.2, 0.1]),
     ],
-    ids=["min", "clip", "x_abs_x", "max", "hypot", "softplus"],
+    ids=[
+        "min",
+        "clip",
+        "x_abs_x",
+        "max",
+        "hypot",
+        "softplus",
+        "max_vector",
+        "norm_inf",
+        "min_axis",
+    ],
 )
 def test_remainder_bound_holds_across_a_kink(name, fn, center):
     """A kink in the set (a jump of the first derivative: abs, max, min switching branch) has no
     Hessian: the branches' Hessians bounded min(x^2, 1)'s remainder at c = 0.9, P = 0.25 by
     0.25 where 0.71 is attained. The first-order mean-value bound holds; smooth functions
-    written with max and abs (hypot, softplus) keep a finite bound."""
+    written with max and abs (hypot, softplus) keep a finite bound, and so do ``jnp.max`` and
+    ``jnp.min`` of an array, whose bound was infinite wherever two entries may tie over the set
+    (JAX divides their derivative by the number of tied entries, which intervals put at 0)."""
     center = jnp.asarray(center)
     shape = 0.25 * jnp.eye(2)
     alpha = np.asarray(jax.jit(lambda c, P: remainder_bound(fn, c, P))(center, shape))

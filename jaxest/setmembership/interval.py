@@ -569,7 +569,7 @@ def _apply(eqn, invals, kinks=None):
             bind(magnitude(operand), magnitude(updates)),
             updates.lo.size + 1,
         )
-    if name == "split":
+    if name in ("split", "unstack"):  # unstack: the transpose of jnp.stack, in a Hessian
         x = invals[0]
         los, his = eqn.primitive.bind(x.lo, **params), eqn.primitive.bind(x.hi, **params)
         return [Interval(lo, hi) for lo, hi in zip(los, his, strict=True)]
@@ -655,6 +655,67 @@ def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None
     return (of("kink"), of("jump")) if found else None
 
 
+#: the reductions :func:`with_pairwise_extrema` writes as trees of two-argument operations
+_EXTREMA = {"reduce_max": lax.max, "reduce_min": lax.min}
+#: calls whose jaxpr :func:`_eval_pairwise` evaluates in place where it holds such a reduction
+#: (a custom derivative's primal is left to its rule)
+_CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint")
+
+
+def _pairwise(op, x, axes):
+    """``op`` (``lax.max`` or ``lax.min``) of ``x`` over ``axes``, as a tree of two-argument
+    ``op`` s: the same value as the reduction."""
+    rest = [size for axis, size in enumerate(x.shape) if axis not in axes]
+    x = jnp.moveaxis(x, axes, tuple(range(len(axes)))).reshape((-1, *rest))
+    while x.shape[0] > 1:
+        half = x.shape[0] // 2
+        x = jnp.concatenate([op(x[:half], x[half : 2 * half]), x[2 * half :]])
+    return x[0]
+
+
+def _holds_extrema(jaxpr) -> bool:
+    return any_equation(jaxpr, lambda eqn: eqn.primitive.name in _EXTREMA)
+
+
+def _eval_pairwise(jaxpr, consts, *args) -> list:
+    """Evaluate ``jaxpr`` with each ``reduce_max`` / ``reduce_min`` as :func:`_pairwise`."""
+    env = {}
+    read = lambda v: v.val if isinstance(v, jex.Literal) else env[v]
+    env.update(zip(jaxpr.constvars, consts, strict=True))
+    env.update(zip(jaxpr.invars, args, strict=True))
+    for eqn in jaxpr.eqns:
+        invals, name = [read(v) for v in eqn.invars], eqn.primitive.name
+        inner = eqn.params.get("jaxpr", eqn.params.get("call_jaxpr"))
+        inner_jaxpr = getattr(inner, "jaxpr", inner)
+        if name in _EXTREMA:
+            outs = [_pairwise(_EXTREMA[name], invals[0], eqn.params["axes"])]
+        elif name in _CALLS and inner is not None and _holds_extrema(inner_jaxpr):
+            outs = _eval_pairwise(inner_jaxpr, getattr(inner, "consts", []), *invals)
+        else:
+            out = eqn.primitive.bind(*invals, **eqn.primitive.get_bind_params(eqn.params))
+            outs = out if eqn.primitive.multiple_results else [out]
+        env.update((var, val) for var, val in zip(eqn.outvars, outs, strict=True))
+    return [read(v) for v in jaxpr.outvars]
+
+
+def with_pairwise_extrema(fn: Callable, box: Interval, args) -> Callable:
+    """``fn`` with every ``jnp.max`` / ``jnp.min`` of an array (``reduce_max``, ``reduce_min``)
+    computed as a tree of two-argument ``lax.max`` / ``lax.min``, for ``fn(x, *args)`` at the
+    shapes of ``box`` and ``args``; ``fn`` itself where it has none. The values are the same.
+    The derivative is not, over intervals: JAX writes a reduction's as the tangents of the
+    largest entries divided by how many there are, a count whose enclosure reaches 0 wherever
+    two entries may tie over the box, so the enclosure of the derivative, and the remainder
+    bound, was infinite; a two-argument maximum's is a choice between its two arguments'."""
+    example, arg_shapes = _shapes(box, args)
+    closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(example, *arg_shapes)
+    if not _holds_extrema(closed.jaxpr):
+        return fn
+    out_tree = jax.tree.structure(out_shape)
+    return lambda x, *a: jax.tree.unflatten(
+        out_tree, _eval_pairwise(closed.jaxpr, closed.consts, x, *a)
+    )
+
+
 def _derivative_jaxpr(derivative: Callable, fn: Callable, box: Interval, args):
     """The closed jaxpr of ``derivative(fn)`` for arguments shaped as ``box`` and ``args``."""
     example, arg_shapes = _shapes(box, args)
@@ -683,6 +744,7 @@ def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
         raise ValueError("box: expected an Interval(lo, hi) of two arrays of one shape")
     if is_concrete(box.lo) and is_concrete(box.hi) and np.any(np.asarray(box.lo > box.hi)):
         raise ValueError("box: has lo > hi, an empty box")  # its 'enclosure' was any number
+    fn = with_pairwise_extrema(fn, box, args)
     return _derivative_enclosures(jax.hessian, fn, [box], *args)[0]
 
 
@@ -721,6 +783,7 @@ def remainder_bound(
     check_callable("fn", fn)
     check_operands(shape, {"center": center})
     box = bounding_box(center, shape)
+    fn = with_pairwise_extrema(fn, box, args)
     hessian = _derivative_jaxpr(jax.hessian, fn, box, args)
     hess = lift(eval_jaxpr(hessian.jaxpr, hessian.consts, box, *args)[0])  # (m, n, n)
     found = kinks_over(fn, box, *args)

@@ -24,11 +24,10 @@ What happens in the failure modes (each reported in ``status``):
   step whose filtered set went bad (one step later when only the prediction did).
 - **Unknown remainder bound** (``Status.NONFINITE``): a remainder bound that is NaN (f or h
   evaluated outside its domain over the set, e.g. ``log`` or ``arcsin`` of an interval wholly
-  outside theirs, or a closed form that failed) or infinite (an enclosure without bound, such as
-  that of the derivative of ``jnp.max`` of a vector over a set where two entries may tie)
-  bounds nothing. A measurement row with one is skipped, so the set stays guaranteed, and
-  flagged (an infinite bound of h's had been used as a strip of infinite width, with status
-  OK); f's makes the predicted set unbounded.
+  outside theirs, or a closed form that failed) or infinite (a closed form's, or an enclosure
+  that overflowed) bounds nothing. A measurement row with one is skipped, so the set stays
+  guaranteed, and flagged (an infinite bound of h's had been used as a strip of infinite
+  width, with status OK); f's makes the predicted set unbounded.
 - **Recovery** (``Status.RECOVERED``, eqs R1-R3 of docs/papers/smf.md): the flag stays set until a
   step whose observed measurement rows alone guarantee a bounded set: h affine in x (its remainder
   bound over the whole space is exactly zero) and the rows constrain every direction (rank n,
