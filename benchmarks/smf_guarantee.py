@@ -2,9 +2,11 @@
 
 Each system has n in {2, 3} states and m in {1, 2, 3} measurements:
 x_{k+1} = A x + a * g(x) + w and y = C x + c * g'(x) + v. Here A is random and stable, and
-C is random. Each g_i is a random one of ten terms of one other state: smooth (sin, tanh,
+C is random. Each g_i is a random one of eleven terms of one other state: smooth (sin, tanh,
 0.3 v^2, cos v - 1, 0.1 v^3, atan, exp(-v^2), sqrt(1 + v^2) - 1), a bearing atan2(v,
--1 + 0.3 cos v) with its branch cut at v = 0, or a step (v > 0.3). The noise is uniform in its
+-1 + 0.3 cos v) with its branch cut at v = 0, a step (v > 0.3), or a kink written as the
+largest entry of an array, max([v, -v / 2]) (``jnp.max``, whose derivative JAX divides by the
+number of tied entries). The noise is uniform in its
 box, and half of the runs draw it at the box's corners. The filter runs with the automatic
 remainder bounds (:func:`jaxest.setmembership.interval.remainder_bound`), its runs under one
 ``jit(vmap)``.
@@ -38,7 +40,7 @@ from jaxest.setmembership import (  # noqa: E402
     SetStatus,
 )
 
-#: the nonlinear terms, by name: smooth ones, a bearing across its branch cut, a step
+#: the nonlinear terms, by name: smooth ones, a bearing across its branch cut, a step, a kink
 TERMS = {
     "sin": jnp.sin,
     "tanh": jnp.tanh,
@@ -50,6 +52,7 @@ TERMS = {
     "hyperbola": lambda v: jnp.sqrt(1 + v**2) - 1,
     "bearing": lambda v: jnp.arctan2(v, -1.0 + 0.3 * jnp.cos(v)),
     "step": lambda v: (v > 0.3).astype(v.dtype),
+    "vee": lambda v: jnp.max(jnp.stack([v, -0.5 * v])),
 }
 
 
