@@ -409,9 +409,41 @@ def test_bounding_box_contains_ellipsoid():
 
 
 def test_unsupported_primitive_is_named():
-    fn = lambda x: jax.lax.fori_loop(0, 2, lambda i, v: v * x, x)
-    with pytest.raises(NotImplementedError, match="scan"):
+    fn = lambda x: jnp.cumsum(x) * x
+    with pytest.raises(NotImplementedError, match="'cumsum'"):
         hessian_interval(fn, Interval(jnp.zeros(2), jnp.ones(2)))
+
+
+def _pendulum_substeps(x):
+    """Three explicit Euler substeps of a damped pendulum in a ``fori_loop`` (a ``scan``)."""
+    field = lambda v: jnp.stack([v[1], -jnp.sin(v[0]) - 0.1 * v[1]])
+    return jax.lax.fori_loop(0, 3, lambda i, v: v + 0.1 * field(v), x)
+
+
+def _outputs_reversed(x):
+    """A reversed ``scan`` whose per-step outputs are summed."""
+    step = lambda carry, a: (carry + a * carry**2, jnp.sin(carry) * a)
+    return jnp.sum(jax.lax.scan(step, x, jnp.asarray([0.5, -1.0, 2.0]), reverse=True)[1], axis=0)
+
+
+@pytest.mark.parametrize(
+    "fn",
+    [
+        _pendulum_substeps,
+        lambda x: jnp.polyval(jnp.asarray([1.0, -2.0, 0.5]), x),
+        _outputs_reversed,
+    ],
+    ids=["fori_loop", "polyval", "scan_reversed"],
+)
+def test_loops_are_evaluated_over_intervals_step_by_step(fn):
+    """``lax.scan`` and ``fori_loop`` with a fixed trip count (an integrator's substeps, Horner's
+    rule in ``jnp.polyval``, a reversed scan with per-step outputs) have their body evaluated
+    over intervals once per step; they raised NotImplementedError ('scan')."""
+    center, shape = jnp.asarray([0.3, 0.5]), 0.04 * jnp.eye(2)
+    alpha = np.asarray(jax.jit(lambda c, P: remainder_bound(fn, c, P))(center, shape))
+    sampled = _sampled_remainders(fn, center, shape, np.random.default_rng(7))
+    assert np.all(np.isfinite(alpha)) and np.all(sampled <= alpha)
+    assert np.all(np.max(sampled, axis=0) > 0.05 * alpha)  # bound is not vacuous
 
 
 def test_bad_boxes_and_ellipsoids_are_named():

@@ -12,7 +12,9 @@ interval that contains the exact real result of the operation on every point of 
 - sinh, cosh, erfc, exp2, log1p and x^y (``pow``, :func:`pow_`) are composed of those rules
   (``_composed``).
 
-A primitive without a rule raises ``NotImplementedError`` naming it.
+A ``lax.scan`` (and a ``fori_loop`` with a fixed trip count, an integrator's substeps) has its
+body evaluated over intervals once per step (:func:`_scan`). A primitive without a rule raises
+``NotImplementedError`` naming it.
 
 :func:`eval_jaxpr` interprets a jaxpr over intervals (constants and literals stay exact), which
 gives :func:`hessian_interval`, an enclosure of the Hessian of any ``jax.numpy`` function over a
@@ -421,7 +423,7 @@ _composed = {
 
 _structural = {
     "reshape", "broadcast_in_dim", "transpose", "squeeze", "expand_dims", "slice", "rev",
-    "dynamic_slice", "gather", "reduce_max", "reduce_min", "copy", "copy_p",
+    "dynamic_slice", "gather", "reduce_max", "reduce_min", "copy", "copy_p", "tile",
 }  # fmt: skip
 
 
@@ -513,6 +515,34 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     return _NON_SMOOTH[name], jnp.any((x.lo < 0) & (x.hi > 0))  # abs, sign
 
 
+def _scan(params, invals, out_avals, kinks) -> list:
+    """A ``lax.scan`` (``fori_loop`` with a fixed trip count too: an integrator's substeps) over
+    intervals: its body evaluated over intervals ``length`` times in turn, as the loop runs."""
+    body, count = params["jaxpr"], params["num_consts"] + params["num_carry"]
+    consts, carry = invals[: params["num_consts"]], invals[params["num_consts"] : count]
+    at = lambda x, i: Interval(x.lo[i], x.hi[i]) if isinstance(x, Interval) else x[i]
+    steps = range(params["length"])
+    outputs = []
+    for i in reversed(steps) if params["reverse"] else steps:
+        out = eval_jaxpr(
+            body.jaxpr, body.consts, *consts, *carry, *[at(x, i) for x in invals[count:]],
+            kinks=kinks,
+        )  # fmt: skip
+        carry = out[: params["num_carry"]]
+        outputs.append(out[params["num_carry"] :])
+    if params["reverse"]:
+        outputs.reverse()
+    stacked = []
+    for j, aval in enumerate(out_avals[params["num_carry"] :]):
+        ys = [step[j] for step in outputs]
+        if not any(isinstance(y, Interval) for y in ys):
+            stacked.append(jnp.stack(ys) if ys else jnp.zeros(aval.shape, aval.dtype))
+            continue
+        ys = [lift(y) for y in ys]
+        stacked.append(Interval(jnp.stack([y.lo for y in ys]), jnp.stack([y.hi for y in ys])))
+    return [*carry, *stacked]
+
+
 def _apply(eqn, invals, kinks=None):
     name = eqn.primitive.name
     params = dict(eqn.params)
@@ -520,6 +550,8 @@ def _apply(eqn, invals, kinks=None):
         return eqn.primitive.bind(*invals, **params)
     if kinks is not None and (kink := _kink(name, params, invals)) is not None:
         kinks.append(kink)
+    if name == "scan":
+        return _scan(params, invals, [v.aval for v in eqn.outvars], kinks)
     inner = params.get("jaxpr", params.get("call_jaxpr"))
     if inner is not None and name in ("pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call", "remat", "checkpoint"):  # fmt: skip
         if isinstance(inner, jex.ClosedJaxpr):
