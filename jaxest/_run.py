@@ -271,8 +271,8 @@ def raise_if_failed(result: AbstractResult):
     """``result``, raising (``eqx.error_if``, works under ``jit``) if its status is not OK.
 
     The message lists what each of the family's flags (``result.flags``) means. Every jaxest
-    result with a status is taken: an estimator's, a smoother's, EM's, ``fit``'s, a Riccati
-    solution, a simulation.
+    result with a status is taken: an estimator's, a smoother's, a simulation's, EM's,
+    ``fit``'s, a Riccati solution, a steady-state gain, a network design.
     """
     if not (hasattr(result, "flags") and hasattr(result, "any_status")):
         raise ValueError(f"result: expected a jaxest result, got {type(result).__name__}")

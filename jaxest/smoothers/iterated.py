@@ -70,6 +70,7 @@ class IteratedSmootherResult(eqx.Module):
 
     @property
     def any_status(self) -> Int[Array, ""]:
+        """The flags of every step, OR'ed (``smoothed.any_status``)."""
         return self.smoothed.any_status
 
     @property
