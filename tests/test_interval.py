@@ -202,6 +202,11 @@ def _sampled_remainders(fn, center, shape, rng, count=20000):
         ),
         ("infinity norm", lambda x: jnp.linalg.norm(x, ord=jnp.inf)[None], [0.1, -0.05]),
         ("min over an axis", lambda x: jnp.min(jnp.outer(x, x + 1.0), axis=1), [0.2, 0.1]),
+        (
+            "max in a loop",
+            lambda x: jax.lax.fori_loop(0, 2, lambda i, v: v + 0.1 * jnp.max(v), x),
+            [0.3, 0.3],
+        ),
     ],
     ids=[
         "min",
@@ -213,6 +218,7 @@ def _sampled_remainders(fn, center, shape, rng, count=20000):
         "max_vector",
         "norm_inf",
         "min_axis",
+        "max_loop",
     ],
 )
 def test_remainder_bound_holds_across_a_kink(name, fn, center):

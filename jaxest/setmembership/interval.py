@@ -721,6 +721,8 @@ def _eval_pairwise(jaxpr, consts, *args) -> list:
         inner_jaxpr = getattr(inner, "jaxpr", inner)
         if name in _EXTREMA:
             outs = [_pairwise(_EXTREMA[name], invals[0], eqn.params["axes"])]
+        elif name == "scan" and _holds_extrema(inner_jaxpr):
+            outs = _scan_pairwise(eqn.params, invals)
         elif name in _CALLS and inner is not None and _holds_extrema(inner_jaxpr):
             outs = _eval_pairwise(inner_jaxpr, getattr(inner, "consts", []), *invals)
         else:
@@ -730,10 +732,27 @@ def _eval_pairwise(jaxpr, consts, *args) -> list:
     return [read(v) for v in jaxpr.outvars]
 
 
+def _scan_pairwise(params, invals) -> list:
+    """A ``lax.scan`` whose body holds a reduction, run with the body's as :func:`_pairwise`."""
+    body, consts = params["jaxpr"], invals[: params["num_consts"]]
+    count = params["num_consts"] + params["num_carry"]
+
+    def step(carry, xs):
+        out = _eval_pairwise(body.jaxpr, body.consts, *consts, *carry, *xs)
+        return out[: params["num_carry"]], out[params["num_carry"] :]
+
+    carry, ys = lax.scan(
+        step, invals[params["num_consts"] : count], invals[count:], length=params["length"],
+        reverse=params["reverse"], unroll=params["unroll"],
+    )  # fmt: skip
+    return [*carry, *ys]
+
+
 def with_pairwise_extrema(fn: Callable, box: Interval, args) -> Callable:
-    """``fn`` with every ``jnp.max`` / ``jnp.min`` of an array (``reduce_max``, ``reduce_min``)
-    computed as a tree of two-argument ``lax.max`` / ``lax.min``, for ``fn(x, *args)`` at the
-    shapes of ``box`` and ``args``; ``fn`` itself where it has none. The values are the same.
+    """``fn`` with every ``jnp.max`` / ``jnp.min`` of an array (``reduce_max``, ``reduce_min``;
+    in a loop's body too) computed as a tree of two-argument ``lax.max`` / ``lax.min``, for
+    ``fn(x, *args)`` at the shapes of ``box`` and ``args``; ``fn`` itself where it has none.
+    The values are the same.
     The derivative is not, over intervals: JAX writes a reduction's as the tangents of the
     largest entries divided by how many there are, a count whose enclosure reaches 0 wherever
     two entries may tie over the box, so the enclosure of the derivative, and the remainder
