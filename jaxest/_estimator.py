@@ -13,33 +13,26 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Int
 
-from jaxest._status import Status, StatusFlag
+from jaxest._status import StatusSummary
 from jaxest.models import check_time_axes
 from jaxest.scan import associative_scan
 
 
-class AbstractResult(eqx.Module):
+class AbstractResult(StatusSummary):
     """What every estimator's result has beside its own fields.
 
     ``status`` holds the flags of each step (``None`` where the caller did not save it);
     ``any_status`` is their bitwise OR over the whole run, always kept; ``final_state`` is the
     estimator's state after the last step, from which filtering resumes on new data
     (``run(..., state=result.final_state, k0=T)``); ``saved`` holds the caller's
-    ``SaveAt(fn=...)`` of each step's output, or ``None``.
+    ``SaveAt(fn=...)`` of each step's output, or ``None``. ``flags`` and ``ok``: as every
+    result's (:class:`~jaxest._status.StatusSummary`).
     """
-
-    #: the status flags of this family (``throw=True`` and ``describe`` use them)
-    flags: ClassVar[type[StatusFlag]] = Status
 
     final_state: eqx.AbstractVar[Any]
     status: eqx.AbstractVar[Int[Array, " T"] | None]
     any_status: eqx.AbstractVar[Int[Array, ""] | None]
     saved: eqx.AbstractVar[Any]
-
-    @property
-    def ok(self) -> jax.Array:
-        """True where every step of the run finished with status OK."""
-        return self.any_status == 0
 
 
 class AbstractEstimator(eqx.Module):

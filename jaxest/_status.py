@@ -83,22 +83,16 @@ def finite_status(*arrays) -> jnp.ndarray:
     return status_where(~finite, Status.NONFINITE)
 
 
-class StatusOverSteps(eqx.Module):
-    """What :class:`~jaxest.AbstractResult` gives an estimator's result, for a result that
-    always keeps its ``status`` with one entry per step (or iteration) on the last axis: a
-    smoother's, a simulation's, EM's. ``any_status`` is the flags OR'ed over the steps and
-    ``ok`` whether they are all OK, per run under ``vmap``; ``flags``, the family that names the
-    bits (``flags.describe(result.any_status)``), so :func:`~jaxest.raise_if_failed` takes it.
+class StatusSummary(eqx.Module):
+    """What every jaxest result with a status has: ``flags``, the family that names its bits
+    (``result.flags.describe(result.any_status)``, :func:`~jaxest.raise_if_failed`), and
+    ``ok``, whether ``any_status`` (the subclass's: its flags OR'ed over the run) is OK, per run
+    under ``vmap``.
 
-    The subclass declares ``status``: declared here, as an abstract field, it would come first
-    among the subclass's constructor arguments."""
+    Subclasses declare their fields (``status`` among them) themselves: an abstract field
+    declared here would come first among a subclass's constructor arguments."""
 
-    flags = Status  #: the family of ``status``'s bits; a subclass sets its own
-
-    @property
-    def any_status(self) -> Int[Array, "*runs"]:
-        """The flags of every step, OR'ed."""
-        return jnp.bitwise_or.reduce(self.status, axis=-1)
+    flags = Status  #: the family of the status bits; a subclass with flags of its own sets it
 
     @property
     def ok(self) -> jax.Array:
@@ -106,18 +100,20 @@ class StatusOverSteps(eqx.Module):
         return self.any_status == 0
 
 
-class StatusOfOne(eqx.Module):
-    """The same for a result with one ``status`` for the whole computation (``fit``'s, a
-    Riccati solution's): ``any_status`` is that status, per solution under ``vmap``."""
+class StatusOverSteps(StatusSummary):
+    """A result that always keeps its ``status`` with one entry per step (or iteration) on the
+    last axis: a smoother's, a simulation's, EM's."""
 
-    flags = Status  #: the family of ``status``'s bits; a subclass sets its own
+    @property
+    def any_status(self) -> Int[Array, "*runs"]:
+        """The flags of every step, OR'ed."""
+        return jnp.bitwise_or.reduce(self.status, axis=-1)
+
+
+class StatusOfOne(StatusSummary):
+    """A result with one ``status`` for the whole computation: ``fit``'s, a Riccati solution's."""
 
     @property
     def any_status(self) -> Int[Array, "*runs"]:
         """The status (one computation: nothing to OR)."""
         return self.status
-
-    @property
-    def ok(self) -> jax.Array:
-        """True where the status is OK."""
-        return self.status == 0

@@ -133,6 +133,14 @@ class Moments(eqx.Module):
     status: Int[Array, ""]
 
 
+def smoothing_filter(parallel: bool, square_root: bool = False):
+    """The filter :func:`kalman_smooth` runs: the square-root ``ParallelKalmanFilter`` with
+    ``parallel``, ``SquareRootKF`` with ``square_root``, else ``KalmanFilter``."""
+    if parallel:
+        return ParallelKalmanFilter()
+    return SquareRootKF() if square_root else KalmanFilter()
+
+
 def kalman_smooth(
     model, ys, *, prior, inputs=None, parallel: bool, square_root: bool = False
 ) -> tuple[SmootherResult, Float[Array, ""]]:
@@ -144,7 +152,7 @@ def kalman_smooth(
     OK, and it was only 4-9 % faster). The E-step below, and each iteration of
     :func:`~jaxest.iterated_smooth`."""
     square_root = square_root or parallel
-    filt = ParallelKalmanFilter() if parallel else SquareRootKF() if square_root else KalmanFilter()
+    filt = smoothing_filter(parallel, square_root)
     save = SaveAt(fields=filt.default_fields + ("factor",)) if square_root else None
     filtered = run(filt, model, ys, prior=prior, inputs=inputs, parallel=parallel, save=save)
     smoothed = rts_smooth(

@@ -126,8 +126,8 @@ def fit(
         loss: ``model -> scalar``, e.g. :func:`neg_loglik` or :func:`supervised_mse`.
         params: attribute paths (``"Q"``, ``"R"``, ``"prior.cov"``...), as one path or a
             sequence of them (Cholesky parametrisation), or a dict path -> ``"cholesky"`` /
-            ``"log_diagonal"`` / ``"unconstrained"`` (see the module docstring). The starting matrix must be one the
-            parametrisation represents: symmetric positive definite for ``"cholesky"``,
+            ``"log_diagonal"`` / ``"unconstrained"`` (see the module docstring). The starting
+            matrix must be one the parametrisation represents: symmetric positive definite for ``"cholesky"``,
             diagonal with positive entries for ``"log_diagonal"``, and floating point for
             each (``ValueError`` otherwise).
         free: optional path -> boolean mask of the unconstrained parameter's free entries

@@ -131,6 +131,16 @@ class SteadyStateFactor(AbstractCovarianceFactor):
         return self.gain.Sigma
 
 
+def check_steady_state_gain(gain, *, none: bool = False) -> None:
+    """``gain`` is a :class:`SteadyStateGain` (or ``None`` where ``none``), ``ValueError`` naming
+    it otherwise."""
+    if not (isinstance(gain, SteadyStateGain) or none and gain is None):
+        allowed = "None or a SteadyStateGain" if none else "a SteadyStateGain"
+        raise ValueError(
+            f"gain: expected {allowed} (steady_state_gain(model)), got {type(gain).__name__}"
+        )
+
+
 class SteadyStateKalmanFilter(AbstractGaussianFilter):
     """Lemma 1 / eq 3: the Kalman filter with its steady-state gain, x(t|t) = x(t|t-1) +
     K (y(t) - H x(t|t-1)), x(t+1|t) = Phi x(t|t), i.e. x(t+1|t+1) = Psi_f x(t|t) + K y(t+1).
@@ -145,11 +155,7 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
     factor_type = SteadyStateFactor
 
     def __check_init__(self):
-        if not (self.gain is None or isinstance(self.gain, SteadyStateGain)):
-            raise ValueError(
-                f"gain: expected None or a SteadyStateGain (steady_state_gain(model)), got "
-                f"{type(self.gain).__name__}"
-            )
+        check_steady_state_gain(self.gain, none=True)
 
     def init(self, model, prior: Gaussian) -> GaussianState:
         check_gaussian_prior(prior)

@@ -515,6 +515,18 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     return _NON_SMOOTH[name], jnp.any((x.lo < 0) & (x.hi > 0))  # abs, sign
 
 
+#: call primitives: their jaxpr is evaluated in place (:func:`_called`)
+_CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint")
+
+
+def _called(params) -> tuple[jex.Jaxpr, list] | None:
+    """The jaxpr a call's (or a loop's) parameters hold, and its constants; ``None`` if none."""
+    inner = params.get("jaxpr", params.get("call_jaxpr"))
+    if inner is None:
+        return None
+    return getattr(inner, "jaxpr", inner), list(getattr(inner, "consts", []))
+
+
 def _scan(params, invals, out_avals, kinks) -> list:
     """A ``lax.scan`` (``fori_loop`` with a fixed trip count too: an integrator's substeps) over
     intervals: its body evaluated over intervals ``length`` times in turn, as the loop runs."""
@@ -552,13 +564,10 @@ def _apply(eqn, invals, kinks=None):
         kinks.append(kink)
     if name == "scan":
         return _scan(params, invals, [v.aval for v in eqn.outvars], kinks)
-    inner = params.get("jaxpr", params.get("call_jaxpr"))
-    if inner is not None and name in ("pjit", "jit", "closed_call", "core_call", "custom_jvp_call", "custom_vjp_call", "remat", "checkpoint"):  # fmt: skip
-        if isinstance(inner, jex.ClosedJaxpr):
-            return eval_jaxpr(
-                inner.jaxpr, inner.consts, *invals[: len(inner.jaxpr.invars)], kinks=kinks
-            )
-        return eval_jaxpr(inner, [], *invals[: len(inner.invars)], kinks=kinks)
+    called = _called(params)
+    if called is not None and name in (*_CALLS, "custom_jvp_call", "custom_vjp_call"):
+        jaxpr, consts = called
+        return eval_jaxpr(jaxpr, consts, *invals[: len(jaxpr.invars)], kinks=kinks)
     rule = _rule(name)
     if rule is not None:
         return rule(*invals)
@@ -670,15 +679,14 @@ def _has_non_smooth(jaxpr) -> bool:
     )
 
 
-def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None:
-    """``(kink, jump)``: whether ``fn(x, *args)`` may have, for x in ``box``, a point where its
+def kinks_over(primal: jex.ClosedJaxpr, box: Interval, *args) -> tuple[Array, Array] | None:
+    """``(kink, jump)``: whether ``fn(x, *args)``, of which ``primal`` is the closed jaxpr
+    (:func:`with_pairwise_extrema` gives it), may have, for x in ``box``, a point where its
     first derivative jumps (a continuous non-smooth operation switching branch: abs, max, min)
     or where its value may jump (sign, ``where`` on a condition that changes over the box, a
     cast to or from integers or booleans whose value changes over it, atan2 across its branch
     cut or at the origin);
     ``None`` where ``fn`` has no non-smooth operation at all (:func:`_kink`)."""
-    example, arg_shapes = _shapes(box, args)
-    primal = jax.make_jaxpr(fn)(example, *arg_shapes)
     if not _has_non_smooth(primal.jaxpr):
         return None  # nothing to evaluate (nor a rule to need for the primal's other primitives)
     found = []
@@ -689,9 +697,6 @@ def kinks_over(fn: Callable, box: Interval, *args) -> tuple[Array, Array] | None
 
 #: the reductions :func:`with_pairwise_extrema` writes as trees of two-argument operations
 _EXTREMA = {"reduce_max": lax.max, "reduce_min": lax.min}
-#: calls whose jaxpr :func:`_eval_pairwise` evaluates in place where it holds such a reduction
-#: (a custom derivative's primal is left to its rule)
-_CALLS = ("pjit", "jit", "closed_call", "core_call", "remat", "checkpoint")
 
 
 def _pairwise(op, x, axes):
@@ -717,14 +722,14 @@ def _eval_pairwise(jaxpr, consts, *args) -> list:
     env.update(zip(jaxpr.invars, args, strict=True))
     for eqn in jaxpr.eqns:
         invals, name = [read(v) for v in eqn.invars], eqn.primitive.name
-        inner = eqn.params.get("jaxpr", eqn.params.get("call_jaxpr"))
-        inner_jaxpr = getattr(inner, "jaxpr", inner)
+        called = _called(eqn.params)
+        holds_extrema = called is not None and _holds_extrema(called[0])
         if name in _EXTREMA:
             outs = [_pairwise(_EXTREMA[name], invals[0], eqn.params["axes"])]
-        elif name == "scan" and _holds_extrema(inner_jaxpr):
+        elif name == "scan" and holds_extrema:
             outs = _scan_pairwise(eqn.params, invals)
-        elif name in _CALLS and inner is not None and _holds_extrema(inner_jaxpr):
-            outs = _eval_pairwise(inner_jaxpr, getattr(inner, "consts", []), *invals)
+        elif name in _CALLS and holds_extrema:  # a custom derivative's primal: left to its rule
+            outs = _eval_pairwise(*called, *invals)
         else:
             out = eqn.primitive.bind(*invals, **eqn.primitive.get_bind_params(eqn.params))
             outs = out if eqn.primitive.multiple_results else [out]
@@ -748,11 +753,12 @@ def _scan_pairwise(params, invals) -> list:
     return [*carry, *ys]
 
 
-def with_pairwise_extrema(fn: Callable, box: Interval, args) -> Callable:
+def with_pairwise_extrema(fn: Callable, box: Interval, args) -> tuple[Callable, jex.ClosedJaxpr]:
     """``fn`` with every ``jnp.max`` / ``jnp.min`` of an array (``reduce_max``, ``reduce_min``;
     in a loop's body too) computed as a tree of two-argument ``lax.max`` / ``lax.min``, for
     ``fn(x, *args)`` at the shapes of ``box`` and ``args``; ``fn`` itself where it has none.
-    The values are the same.
+    With it, its closed jaxpr (traced once, for :func:`kinks_over` too). The values are the
+    same.
     The derivative is not, over intervals: JAX writes a reduction's as the tangents of the
     largest entries divided by how many there are, a count whose enclosure reaches 0 wherever
     two entries may tie over the box, so the enclosure of the derivative, and the remainder
@@ -760,11 +766,12 @@ def with_pairwise_extrema(fn: Callable, box: Interval, args) -> Callable:
     example, arg_shapes = _shapes(box, args)
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(example, *arg_shapes)
     if not _holds_extrema(closed.jaxpr):
-        return fn
+        return fn, closed
     out_tree = jax.tree.structure(out_shape)
-    return lambda x, *a: jax.tree.unflatten(
+    rewritten = lambda x, *a: jax.tree.unflatten(
         out_tree, _eval_pairwise(closed.jaxpr, closed.consts, x, *a)
     )
+    return rewritten, jax.make_jaxpr(rewritten)(example, *arg_shapes)
 
 
 def _derivative_jaxpr(derivative: Callable, fn: Callable, box: Interval, args):
@@ -795,7 +802,7 @@ def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
         raise ValueError("box: expected an Interval(lo, hi) of two arrays of one shape")
     if is_concrete(box.lo) and is_concrete(box.hi) and np.any(np.asarray(box.lo > box.hi)):
         raise ValueError("box: has lo > hi, an empty box")  # its 'enclosure' was any number
-    fn = with_pairwise_extrema(fn, box, args)
+    fn, _ = with_pairwise_extrema(fn, box, args)
     return _derivative_enclosures(jax.hessian, fn, [box], *args)[0]
 
 
@@ -834,10 +841,10 @@ def remainder_bound(
     check_callable("fn", fn)
     check_operands(shape, {"center": center})
     box = bounding_box(center, shape)
-    fn = with_pairwise_extrema(fn, box, args)
+    fn, primal = with_pairwise_extrema(fn, box, args)
     hessian = _derivative_jaxpr(jax.hessian, fn, box, args)
     hess = lift(eval_jaxpr(hessian.jaxpr, hessian.consts, box, *args)[0])  # (m, n, n)
-    found = kinks_over(fn, box, *args)
+    found = kinks_over(primal, box, *args)
     if found is None and zero_outputs(hessian.jaxpr):
         return jnp.zeros(hess.shape[:-2], center.dtype)
     r = _up(jnp.sqrt(jnp.diagonal(shape)))

@@ -37,9 +37,8 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_flag, check_gaussian_arguments, check_positive_int, is_concrete
 from jaxest._priors import Gaussian
-from jaxest._status import Status, StatusFlag
-from jaxest.em import kalman_smooth
-from jaxest.filters.parallel import ParallelStatus
+from jaxest._status import StatusFlag
+from jaxest.em import kalman_smooth, smoothing_filter
 from jaxest.linalg import mv, working_precision_by_default
 from jaxest.models import AbstractGaussianModel, LinearGaussian
 from jaxest.smoothers.rts import SmootherResult
@@ -116,7 +115,7 @@ def _iterated_smooth(model, ys, prior, inputs, initial, num_iters: int, parallel
     start = SmootherResult(
         initial, jnp.zeros((T, n, n), initial.dtype), jnp.zeros(T, jnp.int32),
         jnp.zeros((T - 1, n, n), initial.dtype),
-        ParallelStatus if parallel else Status,  # the family of kalman_smooth's filter
+        smoothing_filter(parallel).result_type.flags,  # the family of kalman_smooth's filter
     )  # fmt: skip
     zero = jnp.zeros((), initial.dtype)
     (smoothed, loglik), changes = jax.lax.scan(body, (start, zero), None, length=num_iters)

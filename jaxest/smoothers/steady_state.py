@@ -25,7 +25,12 @@ from jaxtyping import Array, Float, Int
 from jaxest._priors import Gaussian
 from jaxest._run import run
 from jaxest._status import StatusOverSteps
-from jaxest.filters.steady_state import SteadyStateGain, SteadyStateKalmanFilter, steady_state_gain
+from jaxest.filters.steady_state import (
+    SteadyStateGain,
+    SteadyStateKalmanFilter,
+    check_steady_state_gain,
+    steady_state_gain,
+)
 from jaxest.linalg import working_precision_by_default
 from jaxest.models import LinearGaussian
 
@@ -58,10 +63,7 @@ def characteristic_polynomial(M: Float[Array, "n n"]):
 def arma_innovation_model(gain: SteadyStateGain) -> ArmaInnovationModel:
     """Eq 7: Psi = det(I - Psi_f q^-1), D = Psi I_m, A = D - H Phi adj(I - Psi_f q^-1) K q^-1.
     Compiled as one program (docs/performance.md, "First calls outside jit")."""
-    if not isinstance(gain, SteadyStateGain):
-        raise ValueError(
-            f"gain: expected a SteadyStateGain (steady_state_gain(model)), got {type(gain).__name__}"
-        )
+    check_steady_state_gain(gain)
     return _arma_innovation_model(gain)
 
 
