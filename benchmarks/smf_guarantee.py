@@ -2,11 +2,12 @@
 
 Each system has n in {2, 3} states and m in {1, 2, 3} measurements:
 x_{k+1} = A x + a * g(x) + w and y = C x + c * g'(x) + v. Here A is random and stable, and
-C is random. Each g_i is a random one of eleven terms of one other state: smooth (sin, tanh,
+C is random. Each g_i is a random one of thirteen terms of one other state: smooth (sin, tanh,
 0.3 v^2, cos v - 1, 0.1 v^3, atan, exp(-v^2), sqrt(1 + v^2) - 1), a bearing atan2(v,
--1 + 0.3 cos v) with its branch cut at v = 0, a step (v > 0.3), or a kink written as the
+-1 + 0.3 cos v) with its branch cut at v = 0, a step (v > 0.3), a kink written as the
 largest entry of an array, max([v, -v / 2]) (``jnp.max``, whose derivative JAX divides by the
-number of tied entries). The noise is uniform in its
+number of tied entries), a branch (``lax.cond(v > 0.3, sin, v / 2)``, a jump at 0.3) or a
+quantiser (floor(4 v) / 4, a step at every quarter). The noise is uniform in its
 box, and half of the runs draw it at the box's corners. The filter runs with the automatic
 remainder bounds (:func:`jaxest.setmembership.interval.remainder_bound`), its runs under one
 ``jit(vmap)``.
@@ -40,7 +41,8 @@ from jaxest.setmembership import (  # noqa: E402
     SetStatus,
 )
 
-#: the nonlinear terms, by name: smooth ones, a bearing across its branch cut, a step, a kink
+#: the nonlinear terms, by name: smooth ones, a bearing across its branch cut, a step, a kink, a
+#: branch, a quantiser
 TERMS = {
     "sin": jnp.sin,
     "tanh": jnp.tanh,
@@ -53,6 +55,8 @@ TERMS = {
     "bearing": lambda v: jnp.arctan2(v, -1.0 + 0.3 * jnp.cos(v)),
     "step": lambda v: (v > 0.3).astype(v.dtype),
     "vee": lambda v: jnp.max(jnp.stack([v, -0.5 * v])),
+    "branch": lambda v: jax.lax.cond(v > 0.3, jnp.sin, lambda u: 0.5 * u, v),
+    "quantised": lambda v: 0.25 * jnp.floor(4 * v),
 }
 
 

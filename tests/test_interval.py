@@ -49,7 +49,7 @@ UNARY = {
     "sin": (iv.sin, np.sin, 8.0), "cos": (iv.cos, np.cos, 8.0), "exp": (None, np.exp, 2.0),
     "tanh": (None, np.tanh, 3.0), "atan": (None, np.arctan, 3.0), "abs": (iv.abs_, np.abs, 2.0),
     "square": (None, np.square, 2.0), "asin": (iv.asin, np.arcsin, 1.0),
-    "acos": (iv.acos, np.arccos, 1.0),
+    "acos": (iv.acos, np.arccos, 1.0), "atanh": (None, np.arctanh, 0.999),
 }  # fmt: skip
 
 
@@ -105,6 +105,7 @@ def test_positive_domain_rules_and_poles():
         (iv.sqrt(x), np.sqrt),
         (iv.log(x), np.log),
         (iv.integer_pow(x, -2), lambda v: v**-2.0),
+        (iv.acosh(iv.add(x, 1.0)), lambda v: np.arccosh(v + 1.0)),
     ):
         values = fn(_samples(x, rng))
         assert np.all(values >= np.asarray(out.lo)) and np.all(values <= np.asarray(out.hi))
@@ -116,6 +117,11 @@ def test_positive_domain_rules_and_poles():
         assert np.all(np.asarray(out.hi) >= ends.max(0))
         np.testing.assert_allclose(np.asarray(out.hi - out.lo), np.ptp(ends, 0), rtol=1e-12)
     assert np.isnan(iv.asin(Interval(jnp.asarray([1.5]), jnp.asarray([2.0]))).lo[0])  # no x in it
+    # atanh's poles at +-1 and acosh's domain x >= 1: the part inside, or NaN where none is
+    assert np.isinf(iv.atanh(reaching).hi[0]) and np.isinf(iv.atanh(reaching).lo[1])
+    assert np.isnan(iv.atanh(Interval(jnp.asarray([1.5]), jnp.asarray([2.0]))).lo[0])
+    below = iv.acosh(Interval(jnp.asarray([0.0, -2.0]), jnp.asarray([2.0, 0.5])))
+    assert float(below.lo[0]) <= 0.0 <= float(below.hi[0]) and np.isnan(below.lo[1])
     t = iv.tan(Interval(jnp.asarray([1.0, -0.5]), jnp.asarray([2.0, 0.5])))  # the first holds pi/2
     assert np.isinf(t.lo[0]) and np.isinf(t.hi[0]) and np.isfinite(t.hi[1])
     d = iv.div(iv.point(jnp.ones(1)), Interval(jnp.asarray([-1.0]), jnp.asarray([1.0])))
@@ -271,6 +277,10 @@ def test_remainder_bound_is_nan_where_a_cast_to_integers_or_booleans_may_change(
     assert np.all(np.isnan(np.asarray(bound(truncated, over_one, shape))))
     np.testing.assert_array_equal(bound(step, over_one, shape), [0.0, 0.0])
     np.testing.assert_allclose(bound(truncated, over_step, shape), [0.01, 0.01], rtol=1e-5)
+    # arithmetic on integers is exact (moving an integer endpoint an ulp out: an OverflowError)
+    shifted = lambda x: (x.astype(jnp.int32) - 1).astype(x.dtype) + x**2
+    np.testing.assert_allclose(bound(shifted, over_step, shape), [0.01, 0.01], rtol=1e-5)
+    assert np.all(np.isnan(np.asarray(bound(shifted, over_one, shape))))
     # an exact integer (a step index) made a float is no step, and the function is not evaluated
     # over intervals for it: jnp.prod (reduce_prod) has no interval rule, its Hessian has
     count = jnp.asarray(3, jnp.int32)
@@ -415,8 +425,8 @@ def test_bounding_box_contains_ellipsoid():
 
 
 def test_unsupported_primitive_is_named():
-    fn = lambda x: jnp.cumsum(x) * x
-    with pytest.raises(NotImplementedError, match="'cumsum'"):
+    fn = lambda x: jnp.sort(x) * x
+    with pytest.raises(NotImplementedError, match="'sort'"):
         hessian_interval(fn, Interval(jnp.zeros(2), jnp.ones(2)))
 
 
@@ -438,18 +448,68 @@ def _outputs_reversed(x):
         _pendulum_substeps,
         lambda x: jnp.polyval(jnp.asarray([1.0, -2.0, 0.5]), x),
         _outputs_reversed,
+        lambda x: jnp.cumsum(jnp.sin(x) * x[::-1]),
+        lambda x: jax.lax.cumsum(x**2 * x[0], reverse=True),
     ],
-    ids=["fori_loop", "polyval", "scan_reversed"],
+    ids=["fori_loop", "polyval", "scan_reversed", "cumsum", "cumsum_reversed"],
 )
 def test_loops_are_evaluated_over_intervals_step_by_step(fn):
     """``lax.scan`` and ``fori_loop`` with a fixed trip count (an integrator's substeps, Horner's
     rule in ``jnp.polyval``, a reversed scan with per-step outputs) have their body evaluated
-    over intervals once per step; they raised NotImplementedError ('scan')."""
+    over intervals once per step; they raised NotImplementedError ('scan'). Running sums
+    (``cumsum``, forward and reversed) raised NotImplementedError ('cumsum')."""
     center, shape = jnp.asarray([0.3, 0.5]), 0.04 * jnp.eye(2)
     alpha = np.asarray(jax.jit(lambda c, P: remainder_bound(fn, c, P))(center, shape))
     sampled = _sampled_remainders(fn, center, shape, np.random.default_rng(7))
     assert np.all(np.isfinite(alpha)) and np.all(sampled <= alpha)
     assert np.all(np.max(sampled, axis=0) > 0.05 * alpha)  # bound is not vacuous
+
+
+def _branch_on_x1(threshold):
+    """``cond`` on x_1 > threshold between a product and a cube."""
+    return lambda x: jax.lax.cond(
+        x[0] > threshold, lambda v: jnp.stack([v[0] * v[1], jnp.sin(v[1])]), lambda v: v**3, x
+    )
+
+
+@pytest.mark.parametrize(
+    "fn",
+    [
+        _branch_on_x1(-5.0),
+        _branch_on_x1(5.0),
+        lambda x: jax.lax.switch(
+            2, [lambda v: v**2, jnp.exp, lambda v: jnp.arctanh(v * v[::-1])], x
+        ),
+        lambda x: jax.lax.switch(jnp.floor(x[0] + 10).astype(jnp.int32) - 9, [jnp.exp, jnp.sin], x),
+        lambda x: jax.lax.cond(
+            x[0] > -5.0, lambda v: jnp.stack([v[0] * v[1], jnp.max(v)]), jnp.cos, x
+        ),
+    ],
+    ids=["cond_true", "cond_false", "switch", "switch_on_floor", "max_in_branch"],
+)
+def test_branches_are_evaluated_over_intervals(fn):
+    """``lax.cond`` and ``lax.switch`` whose branch is the same over the set (the index a
+    constant, a comparison or a ``floor`` that does not change there) are bounded by that
+    branch; a ``jnp.max`` in a branch is rewritten pairwise as elsewhere (its bound was
+    infinite). They raised NotImplementedError ('cond'; 'floor' and 'clamp' for the index)."""
+    center, shape = jnp.asarray([0.3, 0.5]), 0.04 * jnp.eye(2)
+    alpha = np.asarray(jax.jit(lambda c, P: remainder_bound(fn, c, P))(center, shape))
+    sampled = _sampled_remainders(fn, center, shape, np.random.default_rng(8))
+    assert np.all(np.isfinite(alpha)) and np.all(sampled <= alpha)
+    assert np.all(np.max(sampled, axis=0) > 0.05 * alpha)  # bound is not vacuous
+
+
+def test_branches_that_may_switch_over_the_set_give_nan():
+    """A ``cond`` whose condition, or a ``switch`` whose ``floor`` index, changes over the set
+    may jump there: NaN, which the set-membership filter flags (the sampled remainder reaches
+    the jump)."""
+    center, shape = jnp.asarray([0.3, 0.5]), 0.04 * jnp.eye(2)
+    on_floor = lambda x: jax.lax.switch(
+        jnp.floor(2 * x[0] + 0.5).astype(jnp.int32), [jnp.sin, jnp.exp], x
+    )
+    for fn in (_branch_on_x1(0.3), on_floor):
+        assert _sampled_remainders(fn, center, shape, np.random.default_rng(9)).max() > 0.2
+        assert np.all(np.isnan(np.asarray(remainder_bound(fn, center, shape))))
 
 
 def test_bad_boxes_and_ellipsoids_are_named():

@@ -10,11 +10,13 @@ interval that contains the exact real result of the operation on every point of 
 - library functions (exp, log, sin, tan, asin, atan, tanh...) are not correctly rounded; XLA's are
   accurate to a few ulps, and their endpoints move outward by ``_LIBM_ULPS`` ulps;
 - sinh, cosh, erfc, exp2, log1p and x^y (``pow``, :func:`pow_`) are composed of those rules
-  (``_composed``).
+  (``_composed``), and so are atanh and acosh;
+- floor, ceil, round and clamp are non-decreasing and exact, applied to both endpoints.
 
 A ``lax.scan`` (and a ``fori_loop`` with a fixed trip count, an integrator's substeps) has its
-body evaluated over intervals once per step (:func:`_scan`). A primitive without a rule raises
-``NotImplementedError`` naming it.
+body evaluated over intervals once per step (:func:`_scan`); a ``lax.cond`` / ``lax.switch``
+takes the hull of the branches its index may select (:func:`_cond`). A primitive without a rule
+raises ``NotImplementedError`` naming it.
 
 :func:`eval_jaxpr` interprets a jaxpr over intervals (constants and literals stay exact), which
 gives :func:`hessian_interval`, an enclosure of the Hessian of any ``jax.numpy`` function over a
@@ -105,7 +107,10 @@ def _eps(x):
 
 
 def _widen(lo, hi, roundings) -> Interval:
-    """Move the endpoints outward by ``roundings`` relative rounding errors, then one ulp."""
+    """Move the endpoints outward by ``roundings`` relative rounding errors, then one ulp;
+    integers (an index computed from a step, ``floor(x).astype(int) - 1``) are exact."""
+    if not jnp.issubdtype(jnp.result_type(lo), jnp.inexact):
+        return Interval(lo, hi)
     if roundings <= 1:
         return Interval(_down(lo), _up(hi))
     k = roundings * _eps(lo)
@@ -195,6 +200,26 @@ def acos(x: Interval) -> Interval:
     return _widen(jnp.arccos(x.hi), jnp.arccos(x.lo), _LIBM_ULPS)
 
 
+def _half(x: Interval) -> Interval:
+    return Interval(0.5 * x.lo, 0.5 * x.hi)  # exact in binary floating point, but on underflow
+
+
+def atanh(x: Interval) -> Interval:
+    """(log(1 + x) - log(1 - x)) / 2 over x restricted to [-1, 1] (+-inf at +-1; an x wholly
+    outside it gives NaN): tight, as both terms increase with x. Composed, as XLA's own atanh
+    was measured 127 ulps off in float64."""
+    x, one = _unit_domain(x), point(jnp.ones_like(x.lo))
+    return _half(sub(log(add(one, x)), log(sub(one, x))))
+
+
+def acosh(x: Interval) -> Interval:
+    """log(x + sqrt((x - 1)(x + 1))) over x restricted to [1, inf) (an x wholly below 1 gives
+    NaN): tight, as every term increases with x there. Composed, as atanh is."""
+    x = Interval(jnp.maximum(x.lo, 1.0), jnp.where(x.hi < 1, jnp.nan, x.hi))
+    one = point(jnp.ones_like(x.lo))
+    return log(add(x, sqrt(mul(sub(x, one), add(x, one)))))
+
+
 def abs_(x: Interval) -> Interval:
     straddles = (x.lo <= 0) & (x.hi >= 0)
     mig = jnp.where(straddles, 0.0, jnp.minimum(jnp.abs(x.lo), jnp.abs(x.hi)))
@@ -263,6 +288,12 @@ def max_(a, b) -> Interval:
     return Interval(jnp.maximum(a.lo, b.lo), jnp.maximum(a.hi, b.hi))
 
 
+def clamp(low, x, high) -> Interval:
+    """``lax.clamp``: min(max(x, low), high), non-decreasing in each argument."""
+    low, x, high = lift(low), lift(x), lift(high)
+    return Interval(lax.clamp(low.lo, x.lo, high.lo), lax.clamp(low.hi, x.hi, high.hi))
+
+
 def min_(a, b) -> Interval:
     a, b = lift(a), lift(b)
     return Interval(jnp.minimum(a.lo, b.lo), jnp.minimum(a.hi, b.hi))
@@ -280,6 +311,14 @@ def reduce_sum(x: Interval, axes) -> Interval:
     terms = math.prod(x.shape[a] for a in axes)
     magnitude = jnp.sum(jnp.maximum(jnp.abs(x.lo), jnp.abs(x.hi)), axis=axes)
     return _widen_sum(jnp.sum(x.lo, axis=axes), jnp.sum(x.hi, axis=axes), magnitude, terms)
+
+
+def cumsum(x: Interval, axis: int, reverse: bool) -> Interval:
+    """Running sums along ``axis``: the k-th of k terms, widened as :func:`reduce_sum` widens a
+    sum of that many (all of ``axis``'s length, the most any of them has)."""
+    running = lambda v: lax.cumsum(v, axis=axis, reverse=reverse)
+    magnitude = running(jnp.maximum(jnp.abs(x.lo), jnp.abs(x.hi)))
+    return _widen_sum(running(x.lo), running(x.hi), magnitude, x.shape[axis])
 
 
 def dot_general(a, b, **params) -> Interval:
@@ -373,10 +412,6 @@ def _exp(x) -> Interval:
     return _increasing(jnp.exp, lift(x))
 
 
-def _half(x: Interval) -> Interval:
-    return Interval(0.5 * x.lo, 0.5 * x.hi)  # exact in binary floating point, but on underflow
-
-
 def _ln2(dtype) -> Interval:
     """An interval around ln 2 in ``dtype`` (its rounded value one ulp either way)."""
     ln2 = jnp.asarray(math.log(2.0), dtype)
@@ -421,6 +456,9 @@ _composed = {
     "pow": pow_,
 }
 
+#: rounding to integers: non-decreasing and exact in floating point, so applied to both ends
+_ROUNDING = {"floor": lax.floor_p, "ceil": lax.ceil_p, "round": lax.round_p}
+
 _structural = {
     "reshape", "broadcast_in_dim", "transpose", "squeeze", "expand_dims", "slice", "rev",
     "dynamic_slice", "gather", "reduce_max", "reduce_min", "copy", "copy_p", "tile",
@@ -431,8 +469,8 @@ def _rule(name: str) -> Callable | None:
     simple = {
         "add": add, "add_any": add, "sub": sub, "mul": mul, "div": div, "sqrt": sqrt,
         "log": log, "abs": abs_, "sin": sin, "cos": cos, "tan": tan, "atan2": atan2,
-        "asin": asin, "acos": acos,
-        "max": max_, "min": min_, "select_n": select_n,
+        "asin": asin, "acos": acos, "atanh": atanh, "acosh": acosh,
+        "max": max_, "min": min_, "clamp": clamp, "select_n": select_n,
         "neg": lambda x: -lift(x),
         "square": lambda x: integer_pow(lift(x), 2),
         "sign": lambda x: Interval(jnp.sign(x.lo), jnp.sign(x.hi)),
@@ -457,8 +495,10 @@ def _rule(name: str) -> Callable | None:
 #: the value stays continuous (the first derivative jumps), "jump" where it need not; and
 #: ``convert_element_type`` to or from integers or booleans (:func:`_is_discrete_cast`)
 _NON_SMOOTH = {
-    "abs": "kink", "max": "kink", "min": "kink", "reduce_max": "kink", "reduce_min": "kink",
-    "sign": "jump", "select_n": "jump", "atan2": "jump",
+    "abs": "kink", "max": "kink", "min": "kink", "clamp": "kink", "reduce_max": "kink",
+    "reduce_min": "kink",
+    "sign": "jump", "select_n": "jump", "atan2": "jump", "floor": "jump", "ceil": "jump",
+    "round": "jump",
 }  # fmt: skip
 
 
@@ -497,6 +537,10 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     if name in ("max", "min"):
         a, b = lift(invals[0]), lift(invals[1])
         return _NON_SMOOTH[name], jnp.any((a.lo < b.hi) & (b.lo < a.hi))
+    if name == "clamp":
+        low, x, high = lift(invals[0]), lift(invals[1]), lift(invals[2])
+        meets = lambda a, b: (a.lo < b.hi) & (b.lo < a.hi)
+        return _NON_SMOOTH[name], jnp.any(meets(x, low) | meets(x, high))
     if name == "atan2":  # pi on the negative x axis, near -pi just below it; undefined at 0
         y, x = lift(invals[0]), lift(invals[1])
         across_the_cut = (x.lo < 0) & (y.lo < 0) & (y.hi >= 0)
@@ -507,6 +551,9 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
         return None
     if name == "select_n":
         return _NON_SMOOTH[name], jnp.any(x.lo != x.hi)
+    if name in _ROUNDING:  # a step at every integer (round: every half-integer)
+        rounded = _both(_ROUNDING[name], x, **params)
+        return _NON_SMOOTH[name], jnp.any(rounded.lo != rounded.hi)
     if name in ("reduce_max", "reduce_min"):
         x, axes = (x if name == "reduce_max" else -x), params["axes"]
         # more than one entry can be the largest: the maximum switches between them
@@ -555,6 +602,24 @@ def _scan(params, invals, out_avals, kinks) -> list:
     return [*carry, *stacked]
 
 
+def _cond(branches, index, operands, kinks) -> list:
+    """``lax.cond`` / ``lax.switch`` over intervals: the hull of the outputs of the branches the
+    index may take over its interval, each evaluated over intervals (every branch is evaluated,
+    as the index may be known only when running). Where the index may change over the box the
+    value may jump, and the cast that made the index (``cond``'s boolean, a float truncated to
+    an integer) is a step :func:`_kink` sees."""
+    index = lift(index)
+    los = his = None
+    for k, branch in enumerate(branches):
+        outs = [lift(v) for v in eval_jaxpr(branch.jaxpr, branch.consts, *operands, kinks=kinks)]
+        taken = (index.lo <= k) & (k <= index.hi)
+        lo_k = [jnp.where(taken, out.lo, _extremes(out.dtype)[0]) for out in outs]
+        hi_k = [jnp.where(taken, out.hi, _extremes(out.dtype)[1]) for out in outs]
+        los = lo_k if los is None else [jnp.minimum(a, b) for a, b in zip(los, lo_k, strict=True)]
+        his = hi_k if his is None else [jnp.maximum(a, b) for a, b in zip(his, hi_k, strict=True)]
+    return [Interval(lo, hi) for lo, hi in zip(los, his, strict=True)]
+
+
 def _apply(eqn, invals, kinks=None):
     name = eqn.primitive.name
     params = dict(eqn.params)
@@ -564,6 +629,8 @@ def _apply(eqn, invals, kinks=None):
         kinks.append(kink)
     if name == "scan":
         return _scan(params, invals, [v.aval for v in eqn.outvars], kinks)
+    if name == "cond":
+        return _cond(params["branches"], invals[0], invals[1:], kinks)
     called = _called(params)
     if called is not None and name in (*_CALLS, "custom_jvp_call", "custom_vjp_call"):
         jaxpr, consts = called
@@ -575,6 +642,8 @@ def _apply(eqn, invals, kinks=None):
         return integer_pow(invals[0], params["y"])
     if name == "reduce_sum":
         return reduce_sum(invals[0], params["axes"])
+    if name == "cumsum":
+        return cumsum(invals[0], params["axis"], params["reverse"])
     if name == "dot_general":
         return dot_general(*invals, **params)
     if name == "convert_element_type":
@@ -592,6 +661,8 @@ def _apply(eqn, invals, kinks=None):
         return Interval(
             eqn.primitive.bind(x.lo, *rest, **params), eqn.primitive.bind(x.hi, *rest, **params)
         )
+    if name in _ROUNDING:
+        return _both(_ROUNDING[name], invals[0], **params)
     if name in ("concatenate", "pad", "stack", "dynamic_update_slice"):
         xs = [lift(v) for v in invals]
         return Interval(
@@ -683,9 +754,9 @@ def kinks_over(primal: jex.ClosedJaxpr, box: Interval, *args) -> tuple[Array, Ar
     """``(kink, jump)``: whether ``fn(x, *args)``, of which ``primal`` is the closed jaxpr
     (:func:`with_pairwise_extrema` gives it), may have, for x in ``box``, a point where its
     first derivative jumps (a continuous non-smooth operation switching branch: abs, max, min)
-    or where its value may jump (sign, ``where`` on a condition that changes over the box, a
-    cast to or from integers or booleans whose value changes over it, atan2 across its branch
-    cut or at the origin);
+    or where its value may jump (sign, floor, ceil, round, ``where`` or ``cond`` on a condition
+    that changes over the box, a cast to or from integers or booleans whose value changes over
+    it, atan2 across its branch cut or at the origin);
     ``None`` where ``fn`` has no non-smooth operation at all (:func:`_kink`)."""
     if not _has_non_smooth(primal.jaxpr):
         return None  # nothing to evaluate (nor a rule to need for the primal's other primitives)
@@ -728,6 +799,12 @@ def _eval_pairwise(jaxpr, consts, *args) -> list:
             outs = [_pairwise(_EXTREMA[name], invals[0], eqn.params["axes"])]
         elif name == "scan" and holds_extrema:
             outs = _scan_pairwise(eqn.params, invals)
+        elif name == "cond" and any(_holds_extrema(b.jaxpr) for b in eqn.params["branches"]):
+            branches = [
+                lambda *operands, b=b: _eval_pairwise(b.jaxpr, b.consts, *operands)
+                for b in eqn.params["branches"]
+            ]
+            outs = lax.switch(invals[0], branches, *invals[1:])
         elif name in _CALLS and holds_extrema:  # a custom derivative's primal: left to its rule
             outs = _eval_pairwise(*called, *invals)
         else:
@@ -755,7 +832,7 @@ def _scan_pairwise(params, invals) -> list:
 
 def with_pairwise_extrema(fn: Callable, box: Interval, args) -> tuple[Callable, jex.ClosedJaxpr]:
     """``fn`` with every ``jnp.max`` / ``jnp.min`` of an array (``reduce_max``, ``reduce_min``;
-    in a loop's body too) computed as a tree of two-argument ``lax.max`` / ``lax.min``, for
+    in a loop's body or a ``cond``'s branch too) computed as a tree of two-argument ``lax.max`` / ``lax.min``, for
     ``fn(x, *args)`` at the shapes of ``box`` and ``args``; ``fn`` itself where it has none.
     With it, its closed jaxpr (traced once, for :func:`kinks_over` too). The values are the
     same.
