@@ -349,34 +349,39 @@ def _balancing(A, G, Q):
     compiled twice as long. States given in very different units (a position in km beside a
     rate in mm/s) are otherwise a Riccati problem float32 cannot solve (docs/robustness.md);
     the Newton steps and the status work on the balanced problem."""
-    n = A.shape[-1]
-    dtype = A.dtype
-    off = ~jnp.eye(n, dtype=bool)
-    abs_A = jnp.where(off, jnp.abs(A), 0)
-    abs_G, abs_Q = jnp.abs(G), jnp.abs(Q)
-    G_off, Q_off = jnp.where(off, abs_G, 0), jnp.where(off, abs_Q, 0)
-    limit = jnp.finfo(dtype).nmant  # |log2 d_i| at most: D Q D stays far from overflow
-
-    def sweep(log_d, _):
-        d = jnp.exp2(log_d)
-        a = 2 * (abs_A @ d + G_off @ (1 / d)) / d + jnp.diagonal(abs_G) / d**2
-        p = 2 * ((1 / d) @ abs_A + Q_off @ d) * d + jnp.diagonal(abs_Q) * d**2
-        coupled = (a > 0) & (p > 0)  # else the state's scale does not matter
-        balancing_step = 0.5 * jnp.log2(_safe_positive(a) / _safe_positive(p))
-        return jnp.clip(log_d + jnp.where(coupled, 0.5 * balancing_step, 0), -limit, limit), None
-
-    log_d, _ = jax.lax.scan(sweep, jnp.zeros(n, dtype), None, length=_BALANCING_SWEEPS)
+    sweep = _balancing_sweep(A, G, Q, jnp)
+    log_d, _ = jax.lax.scan(
+        lambda log_d, _: (sweep(log_d), None), jnp.zeros(A.shape[-1], A.dtype), None,
+        length=_BALANCING_SWEEPS,
+    )  # fmt: skip
     return _power_of_two(jnp.round(log_d))
+
+
+def _balancing_sweep(A, G, Q, xp):
+    """One sweep of :func:`_balancing` (log2 d -> log2 d), in the array namespace ``xp``:
+    ``jax.numpy`` for the solver, ``numpy`` for the eager checks (:func:`_check_modes`)."""
+    n = A.shape[-1]
+    off = ~xp.eye(n, dtype=bool)
+    abs_A = xp.where(off, xp.abs(A), 0)
+    abs_G, abs_Q = xp.abs(G), xp.abs(Q)
+    G_off, Q_off = xp.where(off, abs_G, 0), xp.where(off, abs_Q, 0)
+    limit = xp.finfo(A.dtype).nmant  # |log2 d_i| at most: D Q D stays far from overflow
+    safe_positive = lambda x: xp.where(x > 0, x, 1)  # a harmless argument for an unused log
+
+    def sweep(log_d):
+        d = xp.exp2(log_d)
+        a = 2 * (abs_A @ d + G_off @ (1 / d)) / d + xp.diagonal(abs_G) / d**2
+        p = 2 * ((1 / d) @ abs_A + Q_off @ d) * d + xp.diagonal(abs_Q) * d**2
+        coupled = (a > 0) & (p > 0)  # else the state's scale does not matter
+        balancing_step = 0.5 * xp.log2(safe_positive(a) / safe_positive(p))
+        return xp.clip(log_d + xp.where(coupled, 0.5 * balancing_step, 0), -limit, limit)
+
+    return sweep
 
 
 def _power_of_two(exponent):
     """2^exponent for integer-valued ``exponent``, exactly (``jnp.exp2`` is not exact)."""
     return jnp.ldexp(jnp.ones_like(exponent), exponent.astype(jnp.int32))
-
-
-def _safe_positive(x):
-    """x where positive, else 1: a harmless argument for the logarithm of a ratio not used."""
-    return jnp.where(x > 0, x, 1)
 
 
 # --------------------------------------------------------------------------- forward solvers
@@ -586,6 +591,9 @@ def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
             f"{names[1]}: expected {n} {side} to match {names[0]} ({n} x {n}), "
             f"got shape {np.shape(B)}"
         )
+    if m == 0:
+        what = "measurements" if filter_form else "inputs"
+        raise ValueError(f"{names[1]}: has no {what} (shape {np.shape(B)})")
     check_matrix(names[1], B)  # finite and real
     check_matrix(names[2], Q, (n, n), psd=True)
     check_matrix(names[3], R, (m, m), spd=True)
@@ -599,6 +607,7 @@ def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
             control_A,
             control_B,
             np.asarray(Q, np.float64),
+            np.asarray(R, np.float64),
             discrete,
             wording,
             max(1e-9, 100 * float(jnp.finfo(dtype).eps)),
@@ -606,15 +615,37 @@ def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
     return A, B, Q, R
 
 
-def _check_modes(A, B, Q, discrete, wording, tol):
+def _unit_columns(M) -> np.ndarray:
+    """M with each non-zero column scaled to unit norm: an input (a measurement) in other units
+    scales B's column (H^T's) without changing which modes it reaches."""
+    norms = np.linalg.norm(M, axis=0)
+    return M / np.where(norms > 0, norms, 1.0)
+
+
+def _check_modes(A, B, Q, R, discrete, wording, tol):
     """PBH tests: every mode of A outside or on the stability boundary (|lambda| >= 1, resp.
     Re lambda >= 0) must be controllable through B, and every mode on it observable through Q.
     ``tol`` (relative) is the boundary's width and the rank tolerance: 1e-9, or 100 eps of the
     arguments' dtype (float32 data put a mode on the unit circle only to within its rounding),
     relative to the norms of the matrices each test stacks: with Q's in the controllability
     test's, a large Q (1e12 in float64, 1e6 in float32) made (A, B) = (2, 1) "not
-    stabilisable"."""
+    stabilisable".
+    The tests are made in the solver's balanced coordinates (:func:`_balancing`: D^-1 A D,
+    D^-1 B, D Q D), with B's columns and Q scaled to unit norm, since units change none of the
+    answers: a double integrator in mm and km/s, a measurement H = 1e-10 with R = 1e-20
+    (H = R = 1 in other units), and a small process noise (Q = diag(0, 1e-12); in float32
+    1e-5) were refused as having no solution, which the solver under ``jit`` found with
+    status OK."""
     n = A.shape[0]
+    sweep = _balancing_sweep(A, B @ np.linalg.solve(R, B.T), Q, np)
+    log_d = np.zeros(n)
+    for _ in range(_BALANCING_SWEEPS):
+        log_d = sweep(log_d)
+    d = np.exp2(np.round(log_d))
+    A = A * d[None, :] / d[:, None]
+    B = _unit_columns(B / d[:, None])
+    Q = Q * d[:, None] * d[None, :]
+    Q = Q / max(np.linalg.norm(Q, 2), np.finfo(np.float64).tiny)
     size = lambda *matrices: max(1.0, *(np.linalg.norm(M, 2) for M in matrices))
     where = "|lambda| >= 1" if discrete else "Re lambda >= 0"
     boundary = "the unit circle" if discrete else "the imaginary axis"

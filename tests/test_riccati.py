@@ -456,6 +456,59 @@ def test_a_large_q_does_not_make_a_controllable_pair_uncontrollable(dtype):
             np.testing.assert_allclose(solution.X, expected, rtol=100 * jnp.finfo(dtype).eps)
 
 
+def _in_units(A, B, Q, R, states, inputs):
+    """The problem (A, B, Q, R) with state i in units scaled by ``states[i]`` and input j by
+    ``inputs[j]``, and how to map its X back: the same problem, whose X is D^-1 X D^-1."""
+    d, e = np.asarray(states, float), np.asarray(inputs, float)
+    scaled = (A * d[:, None] / d, B * d[:, None] / e, Q / d[:, None] / d, R / e[:, None] / e)
+    return scaled, lambda X: np.asarray(X) * d[:, None] * d
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_the_eager_check_does_not_depend_on_units(dtype):
+    """Units change no answer, but the eager PBH check measured rank against absolute
+    tolerances, so a solvable problem in other units raised "not stabilisable" or "no
+    stabilising solution": a double integrator in mm and km/s, an input or a measurement
+    scaled by 1e-10 (its R by 1e-20), a tracker with a small process noise, random states
+    scaled by up to 10^+-4 (14 of 40 in a sweep of DARE problems). Each is solved eagerly as under jit, and
+    its X mapped back agrees with the problem in the original units."""
+    tolerance = {"float32": 1e-4, "float64": 1e-8}[dtype]
+    integrator = (np.array([[0.0, 1.0], [0.0, 0.0]]), np.array([[0.0], [1.0]]), np.diag([1.0, 0.0]))
+    rng = np.random.default_rng(21)
+    random = [(rng.normal(size=(3, 3)), rng.normal(size=(3, 1)), np.eye(3)) for _ in range(4)]
+    cases = [
+        (solve_care, sl.solve_continuous_are, integrator, [1e3, 1e-3], [1e4]),
+        (solve_dare, sl.solve_discrete_are, (np.diag([1.2, 0.7]) + np.triu(np.ones((2, 2)), 1) * 0.3,
+                                             np.ones((2, 1)), np.eye(2)), [1.0, 1.0], [1e10]),
+        *[(solve_dare, sl.solve_discrete_are, problem, 10.0 ** rng.uniform(-4, 4, 3), [1.0])
+          for problem in random],
+        *[(solve_care, sl.solve_continuous_are, problem, 10.0 ** rng.uniform(-4, 4, 3), [1.0])
+          for problem in random],
+    ]  # fmt: skip
+    with enable_x64(dtype == "float64"):
+        for solve, scipy_solve, (A, B, Q), states, inputs in cases:
+            reference = scipy_solve(A, B, Q, np.eye(1))
+            scaled, back = _in_units(A, B, Q, np.eye(1), states, inputs)
+            solution = solve(*(jnp.asarray(v, dtype) for v in scaled))
+            error = np.linalg.norm(back(np.asarray(solution.X, np.float64)) - reference)
+            assert int(solution.status) == RiccatiStatus.OK
+            assert error <= tolerance * np.linalg.norm(reference)
+        # the filter forms: a measurement in other units (Sigma is that of H = R = 1), and a
+        # small process noise
+        F, H = np.array([[1.0, 1.0], [0.0, 1.0]]), np.array([[1.0, 0.0]])
+        q = {"float32": 1e-5, "float64": 1e-12}[dtype]
+        for scale, Q in ((1e-10, np.eye(2)), (1.0, np.diag([0.0, q]))):
+            reference = sl.solve_discrete_are(F.T, H.T, Q, np.eye(1))
+            data = (F, scale * H, Q, np.array([[scale**2]]))
+            solution = solve_filter_dare(*(jnp.asarray(v, dtype) for v in data))
+            assert int(solution.status) == RiccatiStatus.OK
+            np.testing.assert_allclose(solution.X, reference, rtol=tolerance, atol=0)
+        # and still refused where units cannot help: a mode of 2 that B does not reach
+        A, B = np.diag([2.0, 0.5]), np.array([[0.0], [1e-4]])
+        with pytest.raises(ValueError, match="not stabilisable: the mode 2 of A"):
+            solve_dare(*_in_units(A, B, np.eye(2), np.eye(1), [1e4, 1e-4], [1e-8])[0])
+
+
 def test_float32_certifies_a_solution_whose_frobenius_norm_overflows():
     """A float32 DARE whose balanced X reaches 7.6e21: jnp.linalg.norm squares the entries and
     overflowed, so the status check's scale was infinite, the relative residual exactly 0 and
@@ -506,6 +559,7 @@ def test_stable_modes_need_neither_control_nor_observation():
         ((np.eye(2), np.array([[np.inf], [1.0]]), np.eye(2), np.eye(1)), "B"),
         ((np.eye(2) + 0j, np.ones((2, 1)), np.eye(2), np.eye(1)), "A"),
         ((np.zeros((0, 0)), np.zeros((0, 1)), np.zeros((0, 0)), np.eye(1)), "A"),
+        ((np.eye(2), np.zeros((2, 0)), np.eye(2), np.zeros((0, 0))), "B"),  # a reduction error
     ],
 )
 def test_bad_arguments_name_the_argument(args, name):
