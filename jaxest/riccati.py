@@ -455,6 +455,15 @@ def _care_solve(A, B, Q, R, G):
 
 
 # --------------------------------------------------------------------------- implicit derivatives
+def _zero_for_zero(solve):
+    """``solve(b)`` for ``custom_linear_solve``, zero where b is: the solution of a linear
+    equation with a zero right-hand side, whatever the operator. Where there is no stabilising
+    solution A_c is unstable, and the Stein and Lyapunov solvers turn even a zero b into NaN
+    (zero times A_c's overflowing powers); so a batch member masked out by its own status
+    (``where(s.ok, s.X, 0)``), whose cotangent is zero, made the whole gradient NaN."""
+    return lambda _, b: jnp.where(jnp.all(b == 0), jnp.zeros_like(b), solve(b))
+
+
 @jax.custom_jvp
 def _dare(A, B, Q, R, G):
     return _dare_solve(A, B, Q, R, G)
@@ -477,8 +486,8 @@ def _dare_jvp(primals, tangents):
     dX = jax.lax.custom_linear_solve(
         lambda N: N - Ac.T @ N @ Ac,
         E,
-        solve=lambda _, b: _stein(Ac.T, b)[0],
-        transpose_solve=lambda _, b: _stein(Ac, b)[0],
+        solve=_zero_for_zero(lambda b: _stein(Ac.T, b)[0]),
+        transpose_solve=_zero_for_zero(lambda b: _stein(Ac, b)[0]),
     )
     return (X, converged), (dX, np.zeros(np.shape(converged), jax.dtypes.float0))
 
@@ -503,8 +512,8 @@ def _care_jvp(primals, tangents):
     dX = jax.lax.custom_linear_solve(
         lambda N: -(Ac.T @ N + N @ Ac),
         E,
-        solve=lambda _, b: _lyapunov(Ac.T, b)[0],
-        transpose_solve=lambda _, b: _lyapunov(Ac, b)[0],
+        solve=_zero_for_zero(lambda b: _lyapunov(Ac.T, b)[0]),
+        transpose_solve=_zero_for_zero(lambda b: _lyapunov(Ac, b)[0]),
     )
     return (X, converged), (dX, np.zeros(np.shape(converged), jax.dtypes.float0))
 

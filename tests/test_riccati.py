@@ -187,6 +187,35 @@ def test_gradient_under_vmap_float32():
     np.testing.assert_allclose(g[0], g64, rtol=1e-3, atol=1e-3)
 
 
+@pytest.mark.parametrize("solve", [solve_dare, solve_care], ids=["dare", "care"])
+def test_a_member_masked_out_by_its_status_leaves_the_gradient_finite(solve):
+    """A batch member with no stabilising solution, masked out by its own status
+    (``where(s.ok, s.X, 0)``), has a zero cotangent; the DARE's adjoint Stein solve turned it
+    into NaN through the unstable A_c, and the whole batch's gradient was NaN (the CARE's
+    Lyapunov solve kept this one finite, and is guarded alike). The gradient is the good
+    members' alone, which central differences confirm."""
+    B, R = jnp.asarray([[0.0], [1.0]]), jnp.eye(1)
+    unstable = 2.0 if solve is solve_dare else 0.5  # a mode B does not reach
+    As = jnp.asarray([[[1.2, 0.3], [0.1, 0.4]], np.diag([unstable, -0.5]), [[0.5, 1.0], [-1, 0.2]]])
+
+    def masked(Q, As):
+        solutions = jax.vmap(lambda A: solve(A, B, Q, R))(As)
+        ok = solutions.ok[:, None, None]
+        return jnp.sum(jnp.where(ok, solutions.X, 0.0)), solutions.ok
+
+    with enable_x64(True):
+        (_, ok), gradient = jax.jit(jax.value_and_grad(masked, has_aux=True))(jnp.eye(2), As)
+        assert ok.tolist() == [True, False, True]
+        good = jax.grad(lambda Q: masked(Q, As[ok])[0])(jnp.eye(2))
+        np.testing.assert_allclose(gradient, good, rtol=1e-12)
+        step = 1e-6
+        for i, j in ((0, 0), (0, 1), (1, 1)):
+            E = jnp.zeros((2, 2)).at[i, j].set(step).at[j, i].set(step)
+            central = (masked(jnp.eye(2) + E, As)[0] - masked(jnp.eye(2) - E, As)[0]) / (2 * step)
+            directional = gradient[i, j] + gradient[j, i] if i != j else gradient[i, i]
+            np.testing.assert_allclose(directional, central, rtol=1e-6)
+
+
 def test_lqr_gain_gradient_through_the_gain():
     with enable_x64(True):
         A, B, Q, R = random_problem(2, 3, 1)
