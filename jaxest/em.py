@@ -64,6 +64,7 @@ from jaxest._checks import (
     check_flag,
     check_gaussian_arguments,
     check_gaussian_prior,
+    check_precision,
     check_positive_int,
 )
 from jaxest._priors import Gaussian
@@ -362,6 +363,21 @@ def _check(model, ys, prior, num_iters, fixed, inputs, parallel, square_root):
     # gave NaN (status 13)
     check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel or square_root)
     check_complete(ys, "fit_em needs complete measurements")
+    # EM updates the model as well as the prior, from the prior, the data and the inputs, each
+    # matrix in its own dtype: a float32 model with a float64 prior (or a float32 F beside a
+    # float64 Q) came out of the first iteration in float64, a TypeError from inside the scan
+    dtypes = {
+        name: jnp.result_type(getattr(model, name))
+        for name in ("F", "H", "Q", "R", "B", "D")
+        if getattr(model, name) is not None
+    }
+    if len(set(dtypes.values())) > 1:
+        given = ", ".join(f"{name} {dtype}" for name, dtype in dtypes.items())
+        raise ValueError(f"model: fit_em updates its matrices in one dtype, got {given}")
+    check_precision(
+        None, ys, model, name="model", **{"the prior": jnp.result_type(prior.mean, prior.cov)},
+        **({} if inputs is None else {"inputs": inputs}),
+    )  # fmt: skip
     dynamics = ({"F", "Q"} | ({"B"} if model.B is not None else set())) - set(fixed)
     if dynamics and np.shape(ys)[0] < 2:
         raise ValueError(

@@ -253,3 +253,10 @@ def test_errors_name_the_argument():
                               jnp.eye(3, dtype=jnp.int32))  # fmt: skip
         with pytest.raises(ValueError, match=f"^model.{name}: is int32; fit_em updates"):
             je.fit_em(integer, ys, prior=prior, num_iters=2)
+    # a float32 model (or a float32 F beside float64 matrices) came out of the first iteration
+    # in float64, a TypeError from inside the scan (a filter run promotes, but EM updates them)
+    float32 = je.astype(init, jnp.float32)
+    with pytest.raises(ValueError, match=r"^model: is float32, narrower .*the prior float64"):
+        je.fit_em(float32, ys.astype(jnp.float32), prior=prior, num_iters=2)
+    with pytest.raises(ValueError, match="^model: fit_em updates its matrices in one dtype"):
+        je.fit_em(eqx.tree_at(lambda m: m.F, init, float32.F), ys, prior=prior, num_iters=2)
