@@ -632,6 +632,8 @@ def test_jit_vmap_grad(x64):
 
 
 def test_bad_arguments_raise():
+    """Settings of the wrong kind are named when the observer is made: a float substeps failed
+    in fori_loop with a TypeError, an infinite dt and a NaN t0 ran on, NaN from the first step."""
     model, obs, prior, _, _ = charlie_setup(jnp.float32)
     with pytest.raises(ValueError, match="M"):
         AdaptiveObserver(M=-jnp.eye(1), Sigma=jnp.eye(3), Q=jnp.eye(4), R=jnp.eye(3))
@@ -641,8 +643,18 @@ def test_bad_arguments_raise():
         AdaptiveObserver(M=jnp.eye(1), Sigma=jnp.eye(2), Q=jnp.eye(4), R=jnp.eye(3)).init(
             model, prior
         )
-    with pytest.raises(ValueError, match="prior.theta"):
+    with pytest.raises(ValueError, match=r"^prior.theta: expected shape \(1,\), one entry per "):
         obs.init(model, ObserverPrior(prior.x, jnp.ones(2), prior.P))
+    tuning = dict(M=jnp.eye(1), Sigma=jnp.eye(3), Q=jnp.eye(4), R=jnp.eye(3))
+    for message, settings in (
+        ("^substeps: must be a positive integer, got 2.5", dict(substeps=2.5)),
+        ("^substeps: must be a positive integer, got 0", dict(substeps=0)),
+        ("^dt: must be a positive number, got inf", dict(dt=np.inf)),
+        ("^dt: must be a positive number, got -0.01", dict(dt=-0.01)),
+        ("^t0: must be a finite number, got nan", dict(t0=np.nan)),
+    ):
+        with pytest.raises(ValueError, match=message):
+            AdaptiveObserver(**tuning, **settings)
 
 
 def test_a_fixed_gain_the_observer_cannot_converge_with_is_named():
@@ -701,13 +713,15 @@ def test_run_names_bad_arguments_before_tracing():
     """The observers' arguments were checked only inside the trace: ys one column too wide ran
     on, broadcast; an indefinite P ran with status OK; a missing input, a list A, a C of the
     wrong width, a psi that is not a function or the other observer's model raised TypeErrors
-    and AttributeErrors from inside; inputs one step short, JAX's error about scan's axes."""
+    and AttributeErrors from inside; inputs one step short, JAX's error about scan's axes; a phi
+    of the wrong shape and a NaN or integer prior.x or prior.theta, below."""
     A, C = jnp.asarray([[0.0, 1.0], [-2.0, -0.5]]), jnp.asarray([[1.0, 0.0]])
     B = jnp.asarray([[0.0], [1.0]])
     model = ContinuousLTV(A, B, C, InputEffectiveness(B))
     obs = AdaptiveObserver(M=jnp.eye(1), Sigma=jnp.eye(1), Q=jnp.eye(2), R=jnp.eye(1), dt=0.01)
     prior = ObserverPrior(jnp.zeros(2), jnp.ones(1), jnp.eye(2))
     discrete = model.discretize(0.01)
+    matrices = (discrete.F, discrete.B, discrete.H)
     dobs = DiscreteAdaptiveObserver(1e-4 * jnp.eye(2), jnp.eye(1))
     dprior = ObserverPrior(jnp.zeros(2), jnp.ones(1), jnp.eye(2), jnp.eye(1))
     ys, us = jnp.zeros((5, 1)), jnp.ones((5, 1))
@@ -726,6 +740,16 @@ def test_run_names_bad_arguments_before_tracing():
         ("^model: expected a DiscreteLTV, got ContinuousLTV", dobs, model, ys, us, dprior),
         # named only by the protocol check before, as a state that changed dtype after one step
         ("^prior: is float32, narrower than", dobs, discrete, ys, us, je.astype(dprior, jnp.float32)),
+        # phi of the wrong height: a TypeError from the trace; of another width than prior.theta:
+        # blamed on the estimator (its step changed state.Ups_pred)
+        (r"^model.phi: expected an \(n, p\) = \(2, p\) matrix, got \(3, 1\)", dobs, DiscreteLTV(*matrices, lambda k, u, y: jnp.ones((3, 1))), ys, us, dprior),
+        (r"^model.phi: expected an \(n, p\) = \(2, p\) matrix, got \(2,\)", dobs, DiscreteLTV(*matrices, lambda k, u, y: jnp.ones(2)), ys, us, dprior),
+        (r"^prior.theta: expected shape \(3,\), one entry per column of model.phi \(2, 3\), got \(1,\)", dobs, DiscreteLTV(*matrices, lambda k, u, y: jnp.ones((2, 3))), ys, us, dprior),
+        # NaN in the prior's vectors ran with status NONFINITE (a Gaussian's mean is refused)
+        ("^prior.x: contains NaN", obs, model, ys, us, ObserverPrior(prior.x.at[0].set(jnp.nan), prior.theta, prior.P)),
+        ("^prior.theta: contains NaN", dobs, discrete, ys, us, eqx.tree_at(lambda p: p.theta, dprior, jnp.full(1, jnp.nan))),
+        ("^prior.x: must be real floating point, got int32", dobs, discrete, ys, us, eqx.tree_at(lambda p: p.x, dprior, jnp.zeros(2, jnp.int32))),
+        (r"^prior.theta: expected a vector, got shape \(1, 1\)", obs, model, ys, us, ObserverPrior(prior.x, jnp.ones((1, 1)), prior.P)),
     ]  # fmt: skip
     for message, observer, model_, ys_, us_, prior_ in cases:
         with pytest.raises(ValueError, match=message):

@@ -331,6 +331,7 @@ def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0, tuning:
     check_inputs(inputs, T, f"the measurements have {T}")
     check_sequence("inputs", inputs, dim=B.shape[1], dim_source=f" (model.B has {B.shape[1]})")
     _check_prior_type(prior)
+    _check_prior_vectors(prior)
     tuning = {name: value for name, value in tuning.items() if value is not None}
     check_precision(model, ys, prior, inputs=inputs, **tuning)
 
@@ -342,12 +343,34 @@ def _check_prior_type(prior) -> None:
         )
 
 
+def _check_prior_vectors(prior) -> None:
+    """``prior.x`` and ``prior.theta``: real floating point vectors without NaN or inf (values
+    where concrete), as :func:`~jaxest._checks.check_prior_arrays` checks a Gaussian's mean; a
+    NaN ran on with status NONFINITE from the first step. Their sizes are ``init``'s to check."""
+    for field in ("x", "theta"):
+        name, value = f"prior.{field}", getattr(prior, field)
+        dtype = as_array(name, value).dtype
+        if not jnp.issubdtype(dtype, jnp.floating):
+            raise ValueError(f"{name}: must be real floating point, got {dtype}")
+        if np.ndim(value) != 1:
+            raise ValueError(f"{name}: expected a vector, got shape {np.shape(value)}")
+        check_matrix(name, value, ndim=1)  # finite
+
+
+def _check_number(name: str, value, sign: str = "") -> None:
+    """``value`` is a finite real number, Python's or NumPy's (not a bool), and ``sign``
+    ("positive", "non-negative") where given: a static setting such as a time or a threshold."""
+    number = isinstance(value, int | float | np.integer | np.floating)
+    finite = number and not isinstance(value, bool | np.bool_) and bool(np.isfinite(value))
+    signed = {"": True, "positive": finite and value > 0, "non-negative": finite and value >= 0}
+    if not (finite and signed[sign]):
+        raise ValueError(f"{name}: must be a {sign or 'finite'} number, got {value!r}")
+
+
 def _check_excitation(window, threshold) -> None:
     """The excitation monitor's window (steps) and threshold (0 never flags)."""
     check_positive_int("excitation_window", window)
-    number = isinstance(threshold, int | float | np.integer | np.floating)
-    if isinstance(threshold, bool) or not (number and 0 <= threshold < np.inf):
-        raise ValueError(f"excitation_threshold: must be a non-negative number, got {threshold!r}")
+    _check_number("excitation_threshold", threshold, "non-negative")
 
 
 def rk4_growth(z):
@@ -394,16 +417,42 @@ def _check_fixed_gain(K, model, dt: float, substeps: int) -> None:
     )
 
 
+def _check_regressor(model, t, n: int, l: int, m: int, prior) -> int:
+    """p, the columns of the model's regressor (:attr:`ContinuousLTV.psi` at time ``t``,
+    :attr:`DiscreteLTV.phi` at step ``t``), evaluated abstractly with u of size ``l`` and y of
+    size ``m``: an (n, p) matrix, and ``prior.theta`` of size p. A regressor of the wrong height
+    failed inside the trace (a TypeError about adding shapes), one of another width was blamed
+    on the estimator (its step changed the state's shape)."""
+    name = "psi" if isinstance(model, ContinuousLTV) else "phi"
+    dtype = jnp.result_type(prior.x)
+    value = jax.eval_shape(getattr(model, name), t, jnp.zeros(l, dtype), jnp.zeros(m, dtype))
+    shape = getattr(value, "shape", None)
+    if shape is None or len(shape) != 2 or shape[0] != n:
+        got = type(value).__name__ if shape is None else shape
+        raise ValueError(f"model.{name}: expected an (n, p) = ({n}, p) matrix, got {got}")
+    p = shape[1]
+    if np.shape(prior.theta) != (p,):
+        raise ValueError(
+            f"prior.theta: expected shape ({p},), one entry per column of model.{name} "
+            f"{shape}, got {np.shape(prior.theta)}"
+        )
+    return p
+
+
+def _check_shapes(shapes: dict) -> None:
+    """Each ``name: (value, shape)`` has that shape."""
+    for name, (value, want) in shapes.items():
+        if np.shape(value) != want:
+            raise ValueError(f"{name}: expected shape {want}, got {np.shape(value)}")
+
+
 def _check_dimensions(M, Sigma, Q, R, K, prior, n, m, p):
-    shapes = {"prior.x": (prior.x, (n,)), "prior.theta": (prior.theta, (p,)), "M": (M, (p, p))}
-    shapes["Sigma"] = (Sigma, (m, m))
+    shapes = {"prior.x": (prior.x, (n,)), "M": (M, (p, p)), "Sigma": (Sigma, (m, m))}
     if K is not None:
         shapes["K"] = (K, (n, m))
     else:
         shapes |= {"Q": (Q, (n, n)), "R": (R, (m, m))}
-    for name, (value, want) in shapes.items():
-        if np.shape(value) != want:
-            raise ValueError(f"{name}: expected shape {want}, got {np.shape(value)}")
+    _check_shapes(shapes)
 
 
 class AdaptiveState(eqx.Module):
@@ -436,10 +485,9 @@ class AdaptiveObserver(AbstractEstimator):
     def __check_init__(self):
         _check_tuning(self.M, self.Sigma, self.Q, self.R, self.K)
         _check_excitation(self.excitation_window, self.excitation_threshold)
-        if not self.dt > 0 or self.substeps < 1:
-            raise ValueError(
-                f"dt: must be positive with substeps >= 1, got {self.dt}, {self.substeps}"
-            )
+        _check_number("dt", self.dt, "positive")
+        check_positive_int("substeps", self.substeps)  # a float failed in fori_loop
+        _check_number("t0", self.t0)
 
     def time(self, k):
         """t_k = t0 + k dt."""
@@ -460,10 +508,7 @@ class AdaptiveObserver(AbstractEstimator):
         A, B, C = model.matrices(t0)
         n, m = A.shape[-1], C.shape[-2]
         dtype = jnp.result_type(prior.x)
-        psi = jax.eval_shape(model.psi, t0, jnp.zeros(B.shape[-1], dtype), jnp.zeros(m, dtype))
-        if len(psi.shape) != 2 or psi.shape[0] != n:
-            raise ValueError(f"model.psi: expected an (n, p) = ({n}, p) matrix, got {psi.shape}")
-        p = psi.shape[1]
+        p = _check_regressor(model, t0, n, B.shape[-1], m, prior)
         _check_dimensions(self.M, self.Sigma, self.Q, self.R, self.K, prior, n, m, p)
         _check_fixed_gain(self.K, model, self.dt, self.substeps)  # where known here (a closure)
         P = None
@@ -628,17 +673,12 @@ class DiscreteAdaptiveObserver(AbstractEstimator):
     def init(self, model: DiscreteLTV, prior: ObserverPrior) -> DiscreteState:
         if not isinstance(prior, ObserverPrior) or prior.P is None or prior.theta_cov is None:
             raise ValueError("prior: expected ObserverPrior(x, theta, P, theta_cov)")
-        F, _, H = model.matrices(0)
-        n, m, p = F.shape[-1], H.shape[-2], np.shape(prior.theta)[0]
+        F, B, H = model.matrices(0)
+        n, m = F.shape[-1], H.shape[-2]
+        p = _check_regressor(model, 0, n, B.shape[-1], m, prior)
         check_matrix("prior.P", prior.P, (n, n), spd=True)
         check_matrix("prior.theta_cov", prior.theta_cov, (p, p), spd=True)
-        for name, value, want in (
-            ("Q", self.Q, (n, n)),
-            ("R", self.R, (m, m)),
-            ("prior.x", prior.x, (n,)),
-        ):
-            if np.shape(value) != want:
-                raise ValueError(f"{name}: expected shape {want}, got {np.shape(value)}")
+        _check_shapes({"Q": (self.Q, (n, n)), "R": (self.R, (m, m)), "prior.x": (prior.x, (n,))})
         dtype = jnp.result_type(prior.x)
         prior_factor = cholesky(jnp.asarray(prior.theta_cov, dtype))
         return DiscreteState(
