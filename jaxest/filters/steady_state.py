@@ -39,8 +39,9 @@ from jaxest.riccati import RiccatiStatus, solve_filter_dare
 class SteadyStateGain(StatusOfOne):
     """Lemma 1: the steady state of the Kalman filter of a time-invariant linear model, and the
     :class:`~jaxest.RiccatiStatus` of the Riccati solution it comes from (NaN Sigma, K and
-    Q_eps where that is not OK, which only happens under ``jit``: outside it
-    :func:`steady_state_gain` raises)."""
+    Q_eps where that is not OK: under ``jit`` where there is no stabilising solution, which
+    :func:`steady_state_gain` raises for outside it, or wherever the solver cannot reach one
+    to working precision, ``INACCURATE``: float32 on an ill-conditioned model)."""
 
     #: the status flags of the Riccati solution
     flags: ClassVar = RiccatiStatus
@@ -94,8 +95,9 @@ def check_time_invariant(model) -> None:
 def steady_state_gain(model: LinearGaussian) -> SteadyStateGain:
     """Sigma from the filter Riccati equation (eq 5), ``solve_filter_dare(Phi, H, Gamma Q
     Gamma^T, R)``, then K (eq 4) and Q_eps. Concrete (F, H) without a stabilising solution raise
-    a ``ValueError`` naming them; under ``jit`` a solution whose status is not OK gives NaN, and
-    the gain's ``status`` says why (``ok``: it is OK)."""
+    a ``ValueError`` naming them; a solution whose status is not OK (under ``jit``, or one the
+    solver cannot certify, eagerly too) gives NaN, and the gain's ``status`` says why (``ok``:
+    it is OK)."""
     check_time_invariant(model)
     R = model.measurement_cov(0)
     solution = solve_filter_dare(model.F, model.H, _state_noise_cov(model), R)
