@@ -14,7 +14,7 @@ import scipy.integrate
 import scipy.linalg
 from jax import enable_x64
 
-from jaxest import Gaussian, raise_if_failed, run
+from jaxest import Gaussian, Status, raise_if_failed, run
 from jaxest.network import (
     CommunicationStructure,
     LargeScaleSystem,
@@ -325,6 +325,93 @@ def test_uncoupled_nodes_are_kalman_bucy_filters():
         raise_if_failed(ss)
         with pytest.raises(Exception, match="NO_FILTER"):
             raise_if_failed(eqx.tree_at(lambda s: s.status, ss, NetworkDesignStatus.NO_FILTER))
+
+
+def scalar_nodes(a, h):
+    """Uncoupled scalar nodes x_i' = a_i x_i + w_i, y_i = h_i x_i + v_i, Q_i = R_i = 1: eq 28 is
+    node i's Riccati equation P' = 2 a_i P - h_i^2 P^2 + 1, solved in closed form below."""
+    N, col = len(a), lambda v: jnp.asarray(v, jnp.float64)[:, None, None]
+    ones = jnp.ones((N, 1, 1))
+    return LargeScaleSystem(
+        A=col(a), C=0 * ones, F=ones, L=jnp.zeros((N, N, 1, 1)), H1=col(h), H2=0 * ones,
+        Q=ones, R=ones,
+    )  # fmt: skip
+
+
+def test_steady_state_flags_a_covariance_that_has_not_settled():
+    """An unstable node that measures nothing (P' = 0.4 P + 1: no steady state) was reported
+    with status OK: J = 1.2e9 at horizon 50, an EquinoxRuntimeError from diffrax (max_steps) at
+    the default horizon (under vmap it stopped the whole batch), and with a second node J =
+    1.4e154 (diffrax's RMS norm of P overflowed to inf, and |P'| < inf fired the steady-state
+    event); a stable node cut short by the horizon likewise; a design past max_steps raised.
+    SteadyState.J summed the costs of a whole vmap-ed batch."""
+    with enable_x64():
+        none1, none2 = CommunicationStructure.none(1), CommunicationStructure.none(2)
+        NOT_SETTLED, FAILED = NetworkDesignStatus.NOT_SETTLED, NetworkDesignStatus.SOLVER_FAILED
+        # a = -1, h = 1: P' = -(P - p1)(P - p2), p1 = sqrt(2) - 1 the steady state, p2 = -1 -
+        # sqrt(2); from P(0) = 0, P(t) = p1 p2 (1 - e^{-kt}) / (p2 - p1 e^{-kt}), k = p1 - p2
+        p1, p2 = np.sqrt(2) - 1, -np.sqrt(2) - 1
+        decay = np.exp(-(p1 - p2) * 0.1)
+        ss = steady_state(scalar_nodes([-1.0], [1.0]), none1)
+        assert ss.status == 0 and float(ss.settle_time) < 20
+        np.testing.assert_allclose(ss.J, p1, rtol=1e-8)
+        short = steady_state(scalar_nodes([-1.0], [1.0]), none1, horizon=0.1)
+        assert short.status == NOT_SETTLED and float(short.settle_time) == 0.1
+        np.testing.assert_allclose(short.J, p1 * p2 * (1 - decay) / (p2 - p1 * decay), rtol=1e-8)
+        # a = 0.2, h = 0: P(t) = (e^{0.4 t} - 1) / 0.4 grows without bound
+        unstable = scalar_nodes([0.2], [0.0])
+        grown = steady_state(unstable, none1, horizon=50.0)
+        assert grown.status == NOT_SETTLED and float(grown.settle_time) == 50.0
+        np.testing.assert_allclose(grown.J, np.expm1(20.0) / 0.4, rtol=1e-8)
+        # at the default horizon P overflows near t = 1770 and the solver stops (max_steps)
+        assert steady_state(unstable, none1).status == NOT_SETTLED | FAILED
+        both = jax.jit(steady_state)(scalar_nodes([-1.0, 0.2], [1.0, 0.0]), none2)
+        assert both.status & NOT_SETTLED
+        np.testing.assert_allclose(both.costs[0], p1, rtol=1e-8)  # the stable node settled
+        # vmap: one member's failure is its own status, not an exception for the batch
+        batch = jax.vmap(lambda s: steady_state(s, none1, horizon=50.0))(
+            jax.vmap(lambda a, h: scalar_nodes(a[None], h[None]))(
+                jnp.asarray([-1.0, 0.2]), jnp.asarray([1.0, 0.0])
+            )
+        )
+        np.testing.assert_array_equal(batch.status, [0, NOT_SETTLED])
+        np.testing.assert_allclose(batch.J, [p1, np.expm1(20.0) / 0.4], rtol=1e-8)
+        # grad through the event-terminated solve: dP/da = 1 + a / sqrt(a^2 + 1)
+        slope = jax.grad(lambda a: steady_state(scalar_nodes(a[None], [1.0]), none1).J)(-1.0)
+        np.testing.assert_allclose(slope, 1 - 1 / np.sqrt(2), rtol=1e-6)
+        cut = design(scalar_nodes([-1.0], [1.0]), none1, jnp.ones((1, 1, 1)), ts=jnp.arange(3.0),
+                     max_steps=3)  # fmt: skip
+        assert cut.status & FAILED and cut.costs[0, 0] == 1.0  # P(0) = cov0, then inf
+
+
+def test_steady_state_checks_its_arguments_as_design_does():
+    """steady_state skipped design's checks: S = -I gave J = -0.414 with status OK, horizon = -1
+    gave J = -1.69 (integrated backwards) with status OK, a NaN or indefinite cov0 an
+    EquinoxRuntimeError from inside diffrax, a cov0 or S of the wrong shape an unpacking or
+    einsum error naming no argument."""
+    with enable_x64():
+        system, none, one = (
+            scalar_nodes([-1.0], [1.0]),
+            CommunicationStructure.none(1),
+            jnp.ones((1, 1, 1)),
+        )
+        for kwargs, match in (
+            ({"S": -one}, r"S: must be positive semidefinite"),
+            ({"S": jnp.ones((1, 1))}, r"S: expected a block per node, shape \(1, 1, 1\)"),
+            ({"cov0": jnp.ones((1, 1))}, r"cov0: expected a block per node, shape \(1, 1, 1\)"),
+            ({"cov0": -5 * one}, r"cov0: must be positive semidefinite"),
+            ({"cov0": jnp.nan * one}, r"cov0: contains NaN"),
+            ({"horizon": -1.0}, r"horizon: must be positive and finite"),
+            ({"horizon": np.inf}, r"horizon: must be positive and finite"),
+            ({"horizon": jnp.ones(2)}, r"horizon: expected a scalar time"),
+            ({"max_steps": 0}, r"max_steps: must be a positive integer"),
+        ):
+            with pytest.raises(ValueError, match=f"^{match}"):
+                steady_state(system, none, **kwargs)
+        with pytest.raises(ValueError, match="^max_steps: must be a positive integer"):
+            design(system, none, one, jnp.arange(3.0), max_steps=2.5)
+        # traced, a NaN cov0 cannot be read: it is flagged, not raised from inside diffrax
+        assert jax.jit(steady_state)(system, none, jnp.nan * one).status & Status.NONFINITE
 
 
 @eqx.filter_jit

@@ -27,6 +27,8 @@ S_i.
 
 from __future__ import annotations
 
+import numbers
+
 import diffrax
 import equinox as eqx
 import jax
@@ -229,7 +231,8 @@ def _tolerances(dtype):
     return (1e-10, 1e-12) if jnp.finfo(dtype).bits == 64 else (1e-5, 1e-7)
 
 
-#: the flags of a design (:func:`design`, :func:`steady_state`): the core's and NO_FILTER
+#: the flags of a design (:func:`design`, :func:`steady_state`): the core's, NO_FILTER,
+#: NOT_SETTLED and SOLVER_FAILED
 NetworkDesignStatus = Status.extend(
     "NetworkDesignStatus",
     NO_FILTER=(
@@ -238,7 +241,33 @@ NetworkDesignStatus = Status.extend(
         "hears a node it is coupled to nor measures that coupling, and the gains and costs "
         "are not those of a filter; call design outside jit to have the node named",
     ),
+    NOT_SETTLED=(
+        8,
+        "steady_state: P' of eqs 28-31 had not fallen to the steady-state tolerance by "
+        "t = horizon, so the gains and costs are those at settle_time, not a steady state's: "
+        "either there is no steady state (a mode of the error dynamics, eq 37, with "
+        "Re lambda >= 0 that no node measures makes the covariance grow without bound; "
+        "centralized_steady_state names such a mode of the whole system) or the horizon is "
+        "shorter than the slowest mode needs; raise horizon",
+    ),
+    SOLVER_FAILED=(
+        16,
+        "the ODE solver of eqs 28-31 (diffrax) stopped before the end of the interval: "
+        "max_steps was reached, the step size collapsed or the covariance overflowed; what "
+        "comes after is not the ODE's solution; raise max_steps, or see NOT_SETTLED for a "
+        "covariance that grows without bound",
+    ),
 )
+
+
+def solver_status(sol) -> Int[Array, ""]:
+    """SOLVER_FAILED where diffrax stopped short (``throw=False``: its failures are data, and
+    under ``vmap`` one member's does not stop the batch), a terminating event (the steady
+    state's) being no failure."""
+    stopped = (sol.result != diffrax.RESULTS.successful) & (
+        sol.result != diffrax.RESULTS.event_occurred
+    )
+    return status_where(stopped, NetworkDesignStatus.SOLVER_FAILED)
 
 
 def design_status(pieces, *arrays) -> Int[Array, ""]:
@@ -283,6 +312,22 @@ def _weights(system, S):
     return S
 
 
+def check_design_arguments(system: LargeScaleSystem, cov0, S, max_steps) -> None:
+    """What :func:`design` and :func:`steady_state` share: ``cov0`` and ``S`` (where given) N
+    symmetric positive semidefinite n x n blocks (a non-symmetric or indefinite cov0 gave other
+    costs silently, an indefinite S a negative J, a NaN cov0 an error from inside diffrax, and a
+    joint (Nn, Nn) one an unpacking error), ``max_steps`` a positive integer."""
+    blocks = (system.num_nodes, system.state_dim, system.state_dim)
+    for name, value in (("cov0", cov0), ("S", S)):
+        if value is not None:
+            if np.ndim(value) != 3:
+                got = np.shape(value)
+                raise ValueError(f"{name}: expected a block per node, shape {blocks}; got {got}")
+            check_matrix(name, value, blocks, psd=True, ndim=3)
+    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
+        raise ValueError(f"max_steps: must be a positive integer, got {max_steps!r}")
+
+
 @working_precision_by_default
 def design(
     system: LargeScaleSystem,
@@ -296,16 +341,11 @@ def design(
     with P(0) = blkdiag(cov0) (eqs 29, 31); return gains and costs at ``ts``.
 
     Raises ``ValueError`` naming the node if the structure admits no filter (lemma 1), and
-    naming ``cov0`` or ``S`` unless each is N positive semidefinite n x n blocks (a
-    non-symmetric or indefinite cov0 gave other costs silently).
+    naming ``cov0`` or ``S`` unless each is N positive semidefinite n x n blocks
+    (:func:`check_design_arguments`). Where the solver stops short (``max_steps``) the status
+    carries SOLVER_FAILED, and the times it did not reach hold inf (NONFINITE).
     """
-    blocks = (system.num_nodes, system.state_dim, system.state_dim)
-    for name, value in (("cov0", cov0), ("S", S)):
-        if value is not None:
-            if np.ndim(value) != 3:
-                got = np.shape(value)
-                raise ValueError(f"{name}: expected a block per node, shape {blocks}; got {got}")
-            check_matrix(name, value, blocks, psd=True, ndim=3)
+    check_design_arguments(system, cov0, S, max_steps)
     if np.ndim(ts) != 1 or np.size(ts) == 0:
         raise ValueError(f"ts: expected a vector of times, got shape {np.shape(ts)}")
     if is_concrete(ts) and np.any(np.diff(np.asarray(ts)) < 0):  # an error from inside diffrax
@@ -333,15 +373,18 @@ def _design(system, structure, cov0, ts, S, max_steps):
             rtol=rtol, atol=atol, jump_ts=list(pieces.starts[1:]) or None
         ),
         max_steps=max_steps,
+        throw=False,
     )
     gains, costs, covs = sol.ys
-    return NetworkDesign(ts, gains, costs, covs[-1], design_status(pieces, gains, costs))
+    status = design_status(pieces, gains, costs) | solver_status(sol)
+    return NetworkDesign(ts, gains, costs, covs[-1], status)
 
 
 class SteadyState(StatusOfOne):
     """Steady state of eqs 28-31 for a constant system: joint covariance P, gains G_i, node costs
     tr(S_i P_i), the time it took to settle, the norm of P' there and the status
-    (:data:`NetworkDesignStatus`)."""
+    (:data:`NetworkDesignStatus`; NOT_SETTLED: P' had not vanished by the horizon, and these are
+    the values at ``settle_time``, not a steady state's)."""
 
     cov: Float[Array, "Nn Nn"]
     gains: Float[Array, "N n q"]
@@ -353,8 +396,10 @@ class SteadyState(StatusOfOne):
     flags = NetworkDesignStatus
 
     @property
-    def J(self):
-        return jnp.sum(self.costs)
+    def J(self) -> Float[Array, ""]:
+        """J = sum_i tr(S_i P_i) (eq 43), per member of a ``vmap``-ed batch (it summed the
+        whole batch's costs)."""
+        return jnp.sum(self.costs, axis=-1)
 
 
 @working_precision_by_default
@@ -366,12 +411,39 @@ def steady_state(
     horizon: float = 1e4,
     max_steps: int = 100_000,
 ) -> SteadyState:
-    """Integrate eqs 28-31 from P(0) = blkdiag(cov0) (zero if None) until P' vanishes (diffrax
-    steady-state event), as docs/papers/network.md recommends over a fixed-point Lyapunov iteration."""
+    """Integrate eqs 28-31 with the gains of step 4 from P(0) = blkdiag(cov0) (zero if None;
+    eqs 29, 31) until P' vanishes (diffrax steady-state event: |P'| < 1e-11 + 1e-9 |P|, RMS
+    norms, in float64; 1e-6 + 1e-4 |P| in float32), at most up to t = ``horizon``, as
+    docs/papers/network.md recommends over a fixed-point Lyapunov iteration.
+
+    Raises ``ValueError`` naming the node if the structure admits no filter (lemma 1), naming
+    ``cov0`` or ``S`` as :func:`design` does (:func:`check_design_arguments`), and ``horizon``
+    unless it is a positive finite scalar. The status carries NOT_SETTLED where P' had not
+    vanished by the horizon: there is no steady state (a mode of the error dynamics e' = Phi e
+    (eq 37) with Re lambda >= 0 that no node measures: P grows without bound) or the horizon is
+    too short; with SOLVER_FAILED where diffrax stopped short (``max_steps``, an overflowing P).
+    The gains and costs are then those at ``settle_time``, not a steady state's.
+    """
     if len(system.switch_times) > 1 or len(structure.switch_times) > 1:
         raise ValueError("system: steady_state needs a constant system and structure; use design()")
+    check_design_arguments(system, cov0, S, max_steps)
+    if np.ndim(horizon) != 0:
+        raise ValueError(f"horizon: expected a scalar time, got shape {np.shape(horizon)}")
+    if is_concrete(horizon) and not (np.isfinite(horizon) and horizon > 0):
+        raise ValueError(f"horizon: must be positive and finite, got {horizon}")
     check_existence(system, structure)
     return _steady_state(system, structure, cov0, _weights(system, S), horizon, max_steps)
+
+
+def _rms_norm(x) -> Float[Array, ""]:
+    """sqrt(mean(x^2)), diffrax's norm for the steady-state event, without overflow: a P growing
+    without bound (no steady state) squared to inf near |P| = 1e154, and |P'| < inf settled it.
+    The scale max|x| is kept between the smallest normal number and its inverse: XLA divides by
+    multiplying with the reciprocal, which flushed to zero above 2^1022 (a norm of 0). inf or
+    NaN where x holds one, so that such a P never settles."""
+    tiny = jnp.finfo(x.dtype).tiny
+    scale = jnp.clip(jnp.max(jnp.abs(x)), tiny, 1 / tiny)
+    return scale * jnp.sqrt(jnp.mean((x / scale) ** 2))
 
 
 @eqx.filter_jit
@@ -388,14 +460,22 @@ def _steady_state(system, structure, cov0, S, horizon, max_steps):
         saveat=diffrax.SaveAt(t1=True),
         args=pieces,
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
-        event=diffrax.Event(diffrax.steady_state_event(rtol=10 * rtol, atol=10 * atol)),
+        event=diffrax.Event(
+            diffrax.steady_state_event(rtol=10 * rtol, atol=10 * atol, norm=_rms_norm)
+        ),
         max_steps=max_steps,
+        throw=False,
     )
     P = sol.ys[-1]
     sys, cons, _, Hbar = pieces.at(sol.ts[-1])
     gains, costs = optimal_gain(sys, cons, Hbar, P), node_costs(P, S)
     rate_norm = jnp.linalg.norm(_vector_field(sol.ts[-1], P, pieces))
-    status = design_status(pieces, gains, costs)
+    settled = sol.result == diffrax.RESULTS.event_occurred  # not: the horizon, or a failure
+    status = (
+        design_status(pieces, gains, costs)
+        | solver_status(sol)
+        | status_where(~settled, NetworkDesignStatus.NOT_SETTLED)
+    )
     return SteadyState(P, gains, costs, sol.ts[-1], rate_norm, status)
 
 
