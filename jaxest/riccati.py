@@ -616,7 +616,9 @@ def _check_arguments(A, B, Q, R, *, discrete: bool, filter_form: bool = False):
             control_A,
             control_B,
             np.asarray(Q, np.float64),
-            np.asarray(R, np.float64),
+            # R scales the balancing only (every R > 0 has the same answer): I where traced, as
+            # under grad in R (a notebook's d MSE / d r), which np.asarray cannot read
+            np.asarray(R, np.float64) if is_concrete(R) else np.eye(R.shape[0]),
             discrete,
             wording,
             max(1e-9, 100 * float(jnp.finfo(dtype).eps)),

@@ -538,6 +538,18 @@ def test_the_eager_check_does_not_depend_on_units(dtype):
             solve_dare(*_in_units(A, B, np.eye(2), np.eye(1), [1e4, 1e-4], [1e-8])[0])
 
 
+def test_gradient_in_R_outside_jit_keeps_the_eager_check():
+    """Differentiating in R alone, outside jit, leaves F, H and Q concrete, so the eager check
+    runs with R traced: it read R for its balancing and raised a TracerArrayConversionError
+    (notebook 03's d MSE / d r). Central differences confirm the gradient."""
+    F, H, Q = np.array([[0.2, 0.1], [0.0, 1.0]]), np.array([[1.0, 0.0]]), np.ones((2, 2))
+    with enable_x64(True):
+        total = lambda r: jnp.sum(solve_filter_dare(F, H, Q, r * jnp.eye(1)).X)
+        gradient = float(jax.grad(total)(1.0))
+        central = (float(total(1.0 + 1e-6)) - float(total(1.0 - 1e-6))) / 2e-6
+        np.testing.assert_allclose(gradient, central, rtol=1e-6)
+
+
 def test_float32_certifies_a_solution_whose_frobenius_norm_overflows():
     """A float32 DARE whose balanced X reaches 7.6e21: jnp.linalg.norm squares the entries and
     overflowed, so the status check's scale was infinite, the relative residual exactly 0 and
