@@ -251,23 +251,34 @@ def check_gaussian_prior(prior, n: int | None = None) -> int:
     return check_prior_arrays(prior, "mean", "cov", n)
 
 
-def check_prior_arrays(prior, vector: str, matrix: str, n: int | None = None) -> int:
-    """The prior's fields ``vector`` (a Gaussian's mean, an ellipsoid's center) and ``matrix``
-    (its cov, shape): real floating point, each of them (an integer one changed the scan's
-    carry, or failed in ``jacfwd``), finite, a vector of size ``n`` (the model's, where given)
-    and a symmetric positive definite matrix of its size (values checked where concrete).
-    Returns the size."""
-    for field in (vector, matrix):
-        dtype = as_array(f"prior.{field}", getattr(prior, field)).dtype
-        if not jnp.issubdtype(dtype, jnp.floating):
-            raise ValueError(f"prior.{field}: must be real floating point, got {dtype}")
-    center, spread = getattr(prior, vector), getattr(prior, matrix)
-    if np.ndim(center) != 1:
-        raise ValueError(f"prior.{vector}: expected a vector, got shape {np.shape(center)}")
-    size = np.shape(center)[0]
+def check_prior_vector(prior, field: str, n: int | None = None) -> int:
+    """The prior's field ``field`` (a Gaussian's mean, an ellipsoid's center, an observer's x or
+    theta): real floating point (an integer one changed the scan's carry, or failed in
+    ``jacfwd``), a vector of size ``n`` (the model's, where given), finite (its values checked
+    where concrete). Returns its size."""
+    name, value = f"prior.{field}", getattr(prior, field)
+    dtype = as_array(name, value).dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"{name}: must be real floating point, got {dtype}")
+    if np.ndim(value) != 1:
+        raise ValueError(f"{name}: expected a vector, got shape {np.shape(value)}")
+    size = np.shape(value)[0]
     if n is not None and size != n:
-        raise ValueError(f"prior.{vector}: expected shape ({n},) to match the model, got ({size},)")
-    check_matrix(f"prior.{vector}", center, (size,), ndim=1)  # finite
+        raise ValueError(f"{name}: expected shape ({n},) to match the model, got ({size},)")
+    check_matrix(name, value, (size,), ndim=1)  # finite
+    return size
+
+
+def check_prior_arrays(prior, vector: str, matrix: str, n: int | None = None) -> int:
+    """The prior's fields ``vector`` (a Gaussian's mean, an ellipsoid's center;
+    :func:`check_prior_vector`) and ``matrix`` (its cov, shape): real floating point and a
+    symmetric positive definite matrix of the vector's size (values checked where concrete).
+    Returns the size."""
+    size = check_prior_vector(prior, vector, n)
+    spread = getattr(prior, matrix)
+    dtype = as_array(f"prior.{matrix}", spread).dtype
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ValueError(f"prior.{matrix}: must be real floating point, got {dtype}")
     if np.ndim(spread) != 2:
         raise ValueError(f"prior.{matrix}: expected shape ({size}, {size}), got {np.shape(spread)}")
     check_matrix(f"prior.{matrix}", spread, (size, size), spd=True)

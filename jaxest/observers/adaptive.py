@@ -44,6 +44,7 @@ from jaxest._checks import (
     check_measurements,
     check_positive_int,
     check_precision,
+    check_prior_vector,
     check_sequence,
     is_concrete,
 )
@@ -331,7 +332,8 @@ def _check_run_arguments(model, model_type: type, ys, inputs, prior, t0, tuning:
     check_inputs(inputs, T, f"the measurements have {T}")
     check_sequence("inputs", inputs, dim=B.shape[1], dim_source=f" (model.B has {B.shape[1]})")
     _check_prior_type(prior)
-    _check_prior_vectors(prior)
+    for field in ("x", "theta"):  # their sizes are init's to check (it evaluates the model)
+        check_prior_vector(prior, field)
     tuning = {name: value for name, value in tuning.items() if value is not None}
     check_precision(model, ys, prior, inputs=inputs, **tuning)
 
@@ -341,20 +343,6 @@ def _check_prior_type(prior) -> None:
         raise ValueError(
             f"prior: expected ObserverPrior(x, theta, ...), got {type(prior).__name__}"
         )
-
-
-def _check_prior_vectors(prior) -> None:
-    """``prior.x`` and ``prior.theta``: real floating point vectors without NaN or inf (values
-    where concrete), as :func:`~jaxest._checks.check_prior_arrays` checks a Gaussian's mean; a
-    NaN ran on with status NONFINITE from the first step. Their sizes are ``init``'s to check."""
-    for field in ("x", "theta"):
-        name, value = f"prior.{field}", getattr(prior, field)
-        dtype = as_array(name, value).dtype
-        if not jnp.issubdtype(dtype, jnp.floating):
-            raise ValueError(f"{name}: must be real floating point, got {dtype}")
-        if np.ndim(value) != 1:
-            raise ValueError(f"{name}: expected a vector, got shape {np.shape(value)}")
-        check_matrix(name, value, ndim=1)  # finite
 
 
 def _check_number(name: str, value, sign: str = "") -> None:
