@@ -327,6 +327,28 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
     check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
 
 
+def check_resumed_arguments(model, ys, inputs, mean) -> None:
+    """The checks of :func:`check_gaussian_arguments` that need no prior, for a run resumed from
+    a state (``run(..., state=...)``): ``ys`` a (T, m) real array without inf, ``inputs`` of T
+    steps, and, for a Gaussian model, inputs given where it has input matrices and ``ys`` as wide
+    as h(x) at ``mean``, a state vector of the resumed state (``None``: not checked). A resumed
+    run skipped every check: a model with B run without its inputs gave other means with status
+    OK."""
+    check_measurements(ys)
+    T = np.shape(ys)[0]
+    if inputs is not None:
+        check_inputs(inputs, T, f"the measurements have {T}")
+    if isinstance(model, ScaledState):
+        model = model.model  # the same h(x) and inputs; shapes do not depend on the units
+    if not isinstance(model, AbstractGaussianModel):
+        return
+    check_inputs_used(model, inputs)
+    if mean is not None:
+        u0 = None if inputs is None else jax.tree.map(first_input, inputs)
+        m = model_shapes(model, mean, u0, "state.mean")["h(x)"][0]
+        check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")
+
+
 def check_model_shapes(model, shapes: dict[str, tuple], n: int, state: str) -> int | None:
     """What the model returns (``shapes``, :func:`model_shapes`) fits a state of size ``n``
     (the size of ``state``, named in the error) and its own h(x); returns the process noise's

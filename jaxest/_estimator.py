@@ -11,8 +11,10 @@ from typing import Any, ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Int
 
+from jaxest._checks import check_resumed_arguments
 from jaxest._status import StatusSummary
 from jaxest.models import check_time_axes
 from jaxest.scan import associative_scan
@@ -96,6 +98,14 @@ class AbstractEstimator(eqx.Module):
     def check(self, model, ys, inputs, prior) -> None:
         """Raise ``ValueError`` naming the argument for malformed arguments (default: none)."""
 
+    def check_resumed(self, model, ys, inputs, state) -> None:
+        """:meth:`check` for a run resumed from ``state`` (``run(..., state=...)``), which has
+        no prior: raise ``ValueError`` naming the argument for malformed ``ys`` and ``inputs``
+        (default: :func:`jaxest._checks.check_resumed_arguments`, with the state's ``mean``
+        where it has one)."""
+        mean = getattr(state, "mean", None)
+        check_resumed_arguments(model, ys, inputs, mean if np.ndim(mean) == 1 else None)
+
     def resume(self, model, state):
         """The state this estimator carries on from ``state`` (``run(..., state=...)``), which
         may be another estimator's final state: ``state`` as it is (default). The Gaussian
@@ -106,7 +116,8 @@ class AbstractEstimator(eqx.Module):
         """Raise ``ValueError`` where an array read at the time index (a time-varying matrix of
         the model or of the estimator) does not cover the steps ``first`` .. ``first + count -
         1`` of a run, which :func:`jaxest.run` checks on every call, resumed runs included
-        (default: the built-in Gaussian models' matrices, :func:`jaxest.models.check_time_axes`)."""
+        (``first`` = 0 where ``k0`` is traced: at least ``count`` steps; default: the built-in
+        Gaussian models' matrices, :func:`jaxest.models.check_time_axes`)."""
         check_time_axes(model, first, count)
 
     def derivative_fields(self, model) -> tuple[str, ...]:

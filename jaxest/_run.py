@@ -150,7 +150,11 @@ def run(
             run instead of repeating the first chunk's.
         state: resume from this state (e.g. ``result.final_state``) instead of ``prior``;
             ``k0`` is then the index of the first of ``ys`` (the number of steps already done);
-            a time-varying model keeps its whole time axis, read at the absolute step k.
+            a time-varying model keeps its whole time axis, read at the absolute step k. The
+            run's arguments are checked as for a prior, but for the prior itself
+            (:meth:`~jaxest.AbstractEstimator.check_resumed`). A ``k0`` traced under ``jit``
+            cannot be checked against the time axis beyond its needing as many steps as ``ys``:
+            a step past its end reads its last matrix (JAX clamps the index).
         save: what to keep of each step (:class:`SaveAt`; default: the estimator's fields).
         parallel: :func:`jaxest.scan.associative_scan` (O(log T) depth) instead of ``lax.scan``; only for
             associative estimators, the default for them.
@@ -201,9 +205,12 @@ def run(
         check_key("key", key)
     if state is None:
         estimator.check(model, ys, inputs, prior)
+    else:
+        estimator.check_resumed(model, ys, inputs, state)
+    # a traced k0 (a resumed run under jit) still needs as many steps as ys has: read past the
+    # end, a time-varying matrix's index was clamped to its last step with status OK
     first = concrete_k0(k0, "ys[0]")
-    if first is not None:  # also when resuming, which skips the estimator's checks
-        estimator.check_steps(model, first, np.shape(ys)[0])
+    estimator.check_steps(model, 0 if first is None else first, np.shape(ys)[0])
     try:
         result = _run(
             estimator, model, jnp.asarray(ys), inputs, prior, state, k0, key,

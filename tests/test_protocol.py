@@ -219,6 +219,33 @@ def test_resume_from_final_state_equals_one_run(Filter):
     np.testing.assert_allclose(rest.loglik, whole.loglik, rtol=1e-12)
 
 
+def test_a_resumed_run_checks_its_arguments():
+    """A run resumed from a state (no prior) skipped every check: a model with B run without its
+    inputs gave means 5.6 off with status OK, ys one column too wide NaN means, inputs of the
+    wrong length an unnamed scan error, a 1-D ys an IndexError. They are named as for a run
+    from a prior, for the Gaussian filters and the particle filter."""
+    model, ys = linear_problem()
+    with_input = eqx.tree_at(lambda m: m.B, model, jnp.ones((2, 1)), is_leaf=lambda x: x is None)
+    inputs = jnp.ones((ys.shape[0], 1))
+    key = jax.random.key(0)
+    for filt in (je.KalmanFilter(), je.UKF(), je.ParticleFilter(50)):
+        first = je.run(filt, with_input, ys[:25], prior=PRIOR, inputs=inputs[:25], key=key)
+        resume = lambda ys, inputs, filt=filt, state=first.final_state: je.run(
+            filt, with_input, ys, state=state, k0=25, inputs=inputs, key=key
+        )
+        cases = (
+            (ys[25:], None, "^inputs: the model has input matrices"),
+            (jnp.concatenate([ys[25:], ys[25:]], axis=1), inputs[25:], "^ys: expected 1 column"),
+            (ys[25:], inputs[25:30], "^inputs: has 5 time steps but the measurements have"),
+            (ys[25:, 0], inputs[25:], r"^ys: expected shape \(T, d\)"),
+            (ys[25:].at[3, 0].set(jnp.inf), inputs[25:], "^ys: contains"),
+        )
+        for bad_ys, bad_inputs, match in cases:
+            with pytest.raises(ValueError, match=match):
+                resume(bad_ys, bad_inputs)
+        assert bool(resume(ys[25:], inputs[25:]).ok)
+
+
 def test_a_filter_resumes_from_another_filters_state():
     """Each Gaussian filter takes another's final state, whatever form holds P there (it raised
     a TypeError or AttributeError), the steady-state filter its mean; the particle filter draws

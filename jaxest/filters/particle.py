@@ -57,7 +57,13 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_flag, check_gaussian_arguments, check_matrix, is_concrete
+from jaxest._checks import (
+    check_flag,
+    check_gaussian_arguments,
+    check_matrix,
+    check_resumed_arguments,
+    is_concrete,
+)
 from jaxest._estimator import AbstractEstimator, AbstractResult
 from jaxest._priors import Gaussian
 from jaxest._status import Status, finite_status, status_where
@@ -316,6 +322,13 @@ class ParticleFilter(AbstractEstimator):
                 "filter samples and weighs (G the linearisation df/du); give the noise as "
                 "x_{k+1} = f(x_k, u_k) + G w_k, or filter it with noise='augmented'"
             )
+
+    def check_resumed(self, model, ys, inputs, state) -> None:
+        """:meth:`~jaxest.AbstractEstimator.check_resumed` at a particle's predicted mean (or a
+        Gaussian filter's state's mean)."""
+        particle = isinstance(state, ParticleState)
+        mean = state.transition.mean[0] if particle else getattr(state, "mean", None)
+        check_resumed_arguments(model, ys, inputs, mean if np.ndim(mean) == 1 else None)
 
     def init(self, model, prior) -> ParticleState:
         N = self.num_particles
