@@ -41,7 +41,11 @@ class StatusFlag(enum.IntFlag):
                 raise ValueError(f"{flag_name}: {value} is not a new single bit")
             ADVICE[flag_name] = advice
         members = {"OK": 0, **{flag.name: flag.value for flag in cls}}
-        return StatusFlag(name, {**members, **{k: v for k, (v, _) in flags.items()}})
+        extended = StatusFlag(name, {**members, **{k: v for k, (v, _) in flags.items()}})
+        inherited = ", ".join(flag.name for flag in cls if flag.value)
+        own = "; ".join(f"{k} ({v}): {advice}" for k, (v, advice) in flags.items())
+        extended.__doc__ = f"Status flags: {cls.__name__}'s ({inherited}) and {own}."
+        return extended
 
     @classmethod
     def explain(cls, code) -> str:

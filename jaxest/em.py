@@ -320,7 +320,8 @@ def fit_em(
         ys: complete measurements, shape (T, m) (no NaN).
         prior: the initial :class:`~jaxest.Gaussian` prior on x_0.
         num_iters: EM iterations (one ``lax.scan``: compiled once per shapes).
-        fixed: names from :data:`PARAMETERS` held at their initial values.
+        fixed: names from :data:`PARAMETERS` held at their initial values (one name alone,
+            or a sequence of them).
         inputs: known inputs u_k, shape (T, p), or ``None``.
         parallel: E-step by the parallel filter and smoother instead of the sequential ones.
         square_root: the sequential E-step on Cholesky factors (``SquareRootKF`` and
@@ -334,6 +335,7 @@ def fit_em(
     dynamax's ``fit_em`` reports it), non-decreasing in i; ``status[i]`` the iteration's
     :data:`EMStatus` flags (``result.ok``: all OK).
     """
+    fixed = (fixed,) if isinstance(fixed, str) else fixed  # one name, not its letters
     _check(model, ys, prior, num_iters, fixed, inputs, parallel, square_root)
     check_flag("throw", throw)
     ys = jnp.asarray(ys)
@@ -358,7 +360,7 @@ def _check(model, ys, prior, num_iters, fixed, inputs, parallel, square_root):
             )
     if inputs is not None and (model.B is None or model.D is None):
         raise ValueError("inputs: fit_em with inputs needs model.B and model.D (zeros to start)")
-    if isinstance(fixed, str) or any(name not in PARAMETERS for name in fixed):
+    if any(name not in PARAMETERS for name in fixed):
         raise ValueError(f"fixed: expected names from {PARAMETERS}, got {fixed!r}")
     check_positive_int("num_iters", num_iters)
     check_flag("parallel", parallel)

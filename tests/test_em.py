@@ -224,6 +224,9 @@ def test_errors_name_the_argument():
     _, ys, _, init, prior = system(0, 3, 2, 20)
     with pytest.raises(ValueError, match="fixed"):
         je.fit_em(init, ys, prior=prior, num_iters=2, fixed=("G",))
+    # one name alone is that name (it was refused, "expected names from (..., 'Q', ...), got 'Q'")
+    np.testing.assert_array_equal(je.fit_em(init, ys, prior=prior, num_iters=2, fixed="Q").model.Q,
+                                  init.Q)  # fmt: skip
     with pytest.raises(ValueError, match="num_iters"):
         je.fit_em(init, ys, prior=prior, num_iters=0)
     with pytest.raises(ValueError, match="ys"):
