@@ -311,6 +311,12 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit("--runs: must be at least 1")
     if args.jobs < 1:
         raise SystemExit("--jobs: must be at least 1")
+    # an option for a study not chosen was ignored without a word (a --jobs worker gets every
+    # option the parent was given, whatever its study)
+    for option, given, study in (("--b747-printed", args.b747_printed, "adaptive"),
+                                 ("--data", args.data is not None, "svd-ekf")):  # fmt: skip
+        if given and study not in names and args.worker is None:
+            raise SystemExit(f"{option}: only the {study} study reads it, and it is not chosen")
     if args.out.exists() and not args.out.is_dir():  # mkdir said "File exists"
         raise SystemExit(f"--out: {args.out} is a file, not a directory")
     try:

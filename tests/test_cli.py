@@ -53,6 +53,11 @@ def test_an_output_folder_that_cannot_be_written_and_bad_data_are_named(tmp_path
         )
     with pytest.raises(SystemExit, match="^--data: .* lacks fAttasElv1_pqrDot.asc, "):
         cli.main(["reproduce", "svd-ekf", "--quick", "--out", out, "--data", str(tmp_path)])
+    # an option for a study not chosen was ignored without a word
+    with pytest.raises(SystemExit, match="^--b747-printed: only the adaptive study reads it"):
+        cli.main(["reproduce", "wiener", "--quick", "--out", out, "--b747-printed"])
+    with pytest.raises(SystemExit, match="^--data: only the svd-ekf study reads it"):
+        cli.main(["reproduce", "wiener", "--quick", "--out", out, "--data", str(tmp_path)])
 
 
 @pytest.mark.slow
