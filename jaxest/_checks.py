@@ -311,42 +311,52 @@ def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = Fal
         unscaled = Gaussian(model.state_mean(prior.mean), model.state_cov(prior.cov))
         check_gaussian_arguments(model.model, ys, inputs, unscaled, positive_Q=positive_Q)
         return
-    check_measurements(ys)
-    T, m_ys = np.shape(ys)
-    if inputs is not None:
-        check_inputs(inputs, T, f"the measurements have {T}")
+    T = _check_data(ys, inputs)
     check_inputs_used(model, inputs)
     n = linear_state_dim(model, prior) if isinstance(model, LinearGaussian) else None
     n = check_gaussian_prior(prior, n)
     check_precision(model, ys, prior)
-    u0 = None if inputs is None else jax.tree.map(first_input, inputs)
-    shapes = model_shapes(model, prior.mean, u0)
+    shapes, u0 = _check_width(model, ys, inputs, prior.mean, "prior.mean")
     m = shapes["h(x)"][0]
-    check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")  # blame ys
     q = check_model_shapes(model, shapes, n, "prior.mean")
     check_noise_values(model, prior.mean, u0, T, m, q, positive_Q)
+
+
+def _check_data(ys, inputs) -> int:
+    """``ys`` a (T, m) real array without inf, ``inputs`` (where given) of T steps; returns T."""
+    check_measurements(ys)
+    T = np.shape(ys)[0]
+    if inputs is not None:
+        check_inputs(inputs, T, f"the measurements have {T}")
+    return T
+
+
+def _check_width(model, ys, inputs, x, state: str) -> tuple[dict, object]:
+    """``ys`` as wide as the model's h(x) at ``x`` (named ``state`` where the model cannot be
+    evaluated there; ys is blamed for the width); returns the model's shapes there
+    (:func:`model_shapes`) and u_0."""
+    u0 = None if inputs is None else jax.tree.map(first_input, inputs)
+    shapes = model_shapes(model, x, u0, state)
+    m = shapes["h(x)"][0]
+    check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")
+    return shapes, u0
 
 
 def check_resumed_arguments(model, ys, inputs, mean) -> None:
     """The checks of :func:`check_gaussian_arguments` that need no prior, for a run resumed from
     a state (``run(..., state=...)``): ``ys`` a (T, m) real array without inf, ``inputs`` of T
     steps, and, for a Gaussian model, inputs given where it has input matrices and ``ys`` as wide
-    as h(x) at ``mean``, a state vector of the resumed state (``None``: not checked). A resumed
-    run skipped every check: a model with B run without its inputs gave other means with status
-    OK."""
-    check_measurements(ys)
-    T = np.shape(ys)[0]
-    if inputs is not None:
-        check_inputs(inputs, T, f"the measurements have {T}")
+    as h(x) at ``mean``, the resumed state's mean (not checked where it has none: ``None`` or
+    not a vector). A resumed run skipped every check: a model with B run without its inputs gave
+    other means with status OK."""
+    _check_data(ys, inputs)
     if isinstance(model, ScaledState):
         model = model.model  # the same h(x) and inputs; shapes do not depend on the units
     if not isinstance(model, AbstractGaussianModel):
         return
     check_inputs_used(model, inputs)
-    if mean is not None:
-        u0 = None if inputs is None else jax.tree.map(first_input, inputs)
-        m = model_shapes(model, mean, u0, "state.mean")["h(x)"][0]
-        check_sequence("ys", ys, dim=m, dim_source=f" (the model's h(x) has {m} entries)")
+    if mean is not None and np.ndim(mean) == 1:
+        _check_width(model, ys, inputs, mean, "state.mean")
 
 
 def check_model_shapes(model, shapes: dict[str, tuple], n: int, state: str) -> int | None:

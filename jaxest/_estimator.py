@@ -11,7 +11,6 @@ from typing import Any, ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, Int
 
 from jaxest._checks import check_resumed_arguments
@@ -103,8 +102,7 @@ class AbstractEstimator(eqx.Module):
         no prior: raise ``ValueError`` naming the argument for malformed ``ys`` and ``inputs``
         (default: :func:`jaxest._checks.check_resumed_arguments`, with the state's ``mean``
         where it has one)."""
-        mean = getattr(state, "mean", None)
-        check_resumed_arguments(model, ys, inputs, mean if np.ndim(mean) == 1 else None)
+        check_resumed_arguments(model, ys, inputs, getattr(state, "mean", None))
 
     def resume(self, model, state):
         """The state this estimator carries on from ``state`` (``run(..., state=...)``), which

@@ -379,6 +379,12 @@ def _balancing_sweep(A, G, Q, xp):
     return sweep
 
 
+def _balanced(d, A, B, Q):
+    """(D^-1 A D, D^-1 B, D Q D), D = diag(d): the problem in :func:`_balancing`'s coordinates,
+    whose solution is D X D."""
+    return A * d / d[:, None], B / d[:, None], Q * d * d[:, None]
+
+
 def _power_of_two(exponent):
     """2^exponent for integer-valued ``exponent``, exactly (``jnp.exp2`` is not exact)."""
     return jnp.ldexp(jnp.ones_like(exponent), exponent.astype(jnp.int32))
@@ -528,7 +534,7 @@ def _solve(A, B, Q, R, *, discrete: bool, filter_form: bool) -> RiccatiSolution:
         A, B = A.T, B.T
     G = jax.lax.stop_gradient(_input_gramian(B, R))  # for the balancing and the start
     d = jax.lax.stop_gradient(_balancing(A, G, Q))
-    A, B, Q, G = A * d / d[:, None], B / d[:, None], Q * d * d[:, None], G / d / d[:, None]
+    (A, B, Q), G = _balanced(d, A, B, Q), G / d / d[:, None]
     X, converged = (_dare if discrete else _care)(A, B, Q, R, G)
     balanced = _solution(A, B, Q, R, X, converged, discrete=discrete)
     X, K = balanced.X / d / d[:, None], balanced.K / d  # back from the balanced coordinates
@@ -652,12 +658,12 @@ def _check_modes(A, B, Q, R, discrete, wording, tol):
     log_d = np.zeros(n)
     for _ in range(_BALANCING_SWEEPS):
         log_d = sweep(log_d)
-    d = np.exp2(np.round(log_d))
-    A = A * d[None, :] / d[:, None]
-    B = _unit_columns(B / d[:, None])
-    Q = Q * d[:, None] * d[None, :]
+    A, B, Q = _balanced(np.exp2(np.round(log_d)), A, B, Q)
+    B = _unit_columns(B)
     Q = Q / max(np.linalg.norm(Q, 2), np.finfo(np.float64).tiny)
     size = lambda *matrices: max(1.0, *(np.linalg.norm(M, 2) for M in matrices))
+    rank_tol_B, rank_tol_Q = tol * size(A, B), tol * size(A, Q)
+    smallest = lambda M: np.linalg.svd(M, compute_uv=False)[-1]
     where = "|lambda| >= 1" if discrete else "Re lambda >= 0"
     boundary = "the unit circle" if discrete else "the imaginary axis"
     for lam in np.linalg.eigvals(A):
@@ -665,11 +671,10 @@ def _check_modes(A, B, Q, R, discrete, wording, tol):
         if distance < -tol:
             continue
         shifted = A - lam * np.eye(n)
-        smallest = lambda M: np.linalg.svd(M, compute_uv=False)[-1]
-        if smallest(np.hstack([shifted, B])) <= tol * size(A, B):
+        if smallest(np.hstack([shifted, B])) <= rank_tol_B:
             raise ValueError(wording["unstabilisable"].format(lam=f"{lam:.6g}", where=where))
         on_boundary = distance <= tol
-        if on_boundary and smallest(np.vstack([shifted, Q])) <= tol * size(A, Q):
+        if on_boundary and smallest(np.vstack([shifted, Q])) <= rank_tol_Q:
             raise ValueError(wording["boundary"].format(lam=f"{lam:.6g}", boundary=boundary))
 
 

@@ -328,7 +328,7 @@ class ParticleFilter(AbstractEstimator):
         Gaussian filter's state's mean)."""
         particle = isinstance(state, ParticleState)
         mean = state.transition.mean[0] if particle else getattr(state, "mean", None)
-        check_resumed_arguments(model, ys, inputs, mean if np.ndim(mean) == 1 else None)
+        check_resumed_arguments(model, ys, inputs, mean)
 
     def init(self, model, prior) -> ParticleState:
         N = self.num_particles

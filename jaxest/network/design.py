@@ -27,8 +27,6 @@ S_i.
 
 from __future__ import annotations
 
-import numbers
-
 import diffrax
 import equinox as eqx
 import jax
@@ -36,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from jaxest._checks import check_matrix, is_concrete
+from jaxest._checks import check_matrix, check_positive_int, is_concrete
 from jaxest._status import Status, StatusOfOne, finite_status, status_where
 from jaxest.linalg import symmetrize, working_precision_by_default
 from jaxest.network.structure import (
@@ -324,8 +322,7 @@ def check_design_arguments(system: LargeScaleSystem, cov0, S, max_steps) -> None
                 got = np.shape(value)
                 raise ValueError(f"{name}: expected a block per node, shape {blocks}; got {got}")
             check_matrix(name, value, blocks, psd=True, ndim=3)
-    if isinstance(max_steps, bool) or not isinstance(max_steps, numbers.Integral) or max_steps < 1:
-        raise ValueError(f"max_steps: must be a positive integer, got {max_steps!r}")
+    check_positive_int("max_steps", max_steps)
 
 
 @working_precision_by_default

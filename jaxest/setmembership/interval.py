@@ -535,12 +535,10 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     if name not in _NON_SMOOTH:
         return None
     if name in ("max", "min"):
-        a, b = lift(invals[0]), lift(invals[1])
-        return _NON_SMOOTH[name], jnp.any((a.lo < b.hi) & (b.lo < a.hi))
+        return _NON_SMOOTH[name], jnp.any(_may_cross(invals[0], invals[1]))
     if name == "clamp":
-        low, x, high = lift(invals[0]), lift(invals[1]), lift(invals[2])
-        meets = lambda a, b: (a.lo < b.hi) & (b.lo < a.hi)
-        return _NON_SMOOTH[name], jnp.any(meets(x, low) | meets(x, high))
+        low, x, high = invals
+        return _NON_SMOOTH[name], jnp.any(_may_cross(x, low) | _may_cross(x, high))
     if name == "atan2":  # pi on the negative x axis, near -pi just below it; undefined at 0
         y, x = lift(invals[0]), lift(invals[1])
         across_the_cut = (x.lo < 0) & (y.lo < 0) & (y.hi >= 0)
@@ -560,6 +558,12 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
         top = jnp.max(x.lo, axis=axes, keepdims=True)
         return _NON_SMOOTH[name], jnp.any(jnp.sum(x.hi >= top, axis=axes) > 1)
     return _NON_SMOOTH[name], jnp.any((x.lo < 0) & (x.hi > 0))  # abs, sign
+
+
+def _may_cross(a, b):
+    """Whether a - b may change sign over the intervals (where max, min and clamp switch)."""
+    a, b = lift(a), lift(b)
+    return (a.lo < b.hi) & (b.lo < a.hi)
 
 
 #: call primitives: their jaxpr is evaluated in place (:func:`_called`)
@@ -832,8 +836,8 @@ def _scan_pairwise(params, invals) -> list:
 
 def with_pairwise_extrema(fn: Callable, box: Interval, args) -> tuple[Callable, jex.ClosedJaxpr]:
     """``fn`` with every ``jnp.max`` / ``jnp.min`` of an array (``reduce_max``, ``reduce_min``;
-    in a loop's body or a ``cond``'s branch too) computed as a tree of two-argument ``lax.max`` / ``lax.min``, for
-    ``fn(x, *args)`` at the shapes of ``box`` and ``args``; ``fn`` itself where it has none.
+    in a loop's body or a ``cond``'s branch too) computed as a tree of two-argument
+    ``lax.max`` / ``lax.min``, for ``fn(x, *args)`` at the shapes of ``box`` and ``args``; ``fn`` itself where it has none.
     With it, its closed jaxpr (traced once, for :func:`kinks_over` too). The values are the
     same.
     The derivative is not, over intervals: JAX writes a reduction's as the tangents of the
