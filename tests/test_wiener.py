@@ -186,6 +186,11 @@ def test_steady_state_gain_names_F_and_H_and_is_never_silently_wrong():
         assert np.all(np.asarray(filtered.status) & je.Status.NONFINITE)
         smoothed = steady_state_smooth_jit(undetectable, ys, je.Gaussian(jnp.zeros(2), jnp.eye(2)))
         assert np.all(np.asarray(smoothed.status) & je.Status.NONFINITE)  # it says so too
+        # and both say why (they said NONFINITE alone, the gain's reason lost)
+        for result in (filtered, smoothed):
+            assert result.flags is je.SteadyStateStatus
+            assert np.all(np.asarray(result.status) & je.SteadyStateStatus.NO_STEADY_STATE)
+            assert "NO_STEADY_STATE" in result.flags.describe(result.any_status)
         scalar = je.LinearGaussian(
             F=jnp.array([[2.0]]), H=jnp.array([[1.0]]), Q=jnp.zeros((1, 1)), R=jnp.eye(1)
         )

@@ -42,6 +42,8 @@ from jaxest.filters.sqrt_kf import SquareRootKF as SquareRootKF
 from jaxest.filters.steady_state import (
     SteadyStateGain as SteadyStateGain,
     SteadyStateKalmanFilter as SteadyStateKalmanFilter,
+    SteadyStateResult as SteadyStateResult,
+    SteadyStateStatus as SteadyStateStatus,
     steady_state_gain as steady_state_gain,
 )
 from jaxest.filters.svd_ekf import (

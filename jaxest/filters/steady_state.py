@@ -22,10 +22,11 @@ from jaxtyping import Array, Float, Int
 
 from jaxest._checks import check_complete, check_gaussian_prior
 from jaxest._priors import Gaussian
-from jaxest._status import StatusOfOne, finite_status
+from jaxest._status import Status, StatusOfOne, finite_status, status_where
 from jaxest.filters.base import (
     AbstractCovarianceFactor,
     AbstractGaussianFilter,
+    FilterResult,
     GaussianState,
     StepOutput,
     check_gaussian_state,
@@ -143,6 +144,27 @@ def check_steady_state_gain(gain, *, none: bool = False) -> None:
         )
 
 
+SteadyStateStatus = Status.extend(
+    "SteadyStateStatus",
+    NO_STEADY_STATE=(
+        4,
+        "the steady-state gain has no accurate Riccati solution, so the estimates are NaN: "
+        "gain.flags.describe(gain.status) (gain = steady_state_gain(model)) says why: no "
+        "stabilising solution where (F, H) is not detectable or (F, G Q^1/2) has a mode on the "
+        "unit circle it cannot reach, INACCURATE for float32 on an ill-conditioned model (use "
+        "float64, or a KalmanFilter, which needs no steady state)",
+    ),
+)
+"""The steady-state filter's and smoother's status flags: the core's and NO_STEADY_STATE, set
+at every step where the gain's :class:`~jaxest.RiccatiStatus` is not OK."""
+
+
+class SteadyStateResult(FilterResult):
+    """:class:`~jaxest.FilterResult` whose status bits are :data:`SteadyStateStatus`."""
+
+    flags: ClassVar = SteadyStateStatus
+
+
 class SteadyStateKalmanFilter(AbstractGaussianFilter):
     """Lemma 1 / eq 3: the Kalman filter with its steady-state gain, x(t|t) = x(t|t-1) +
     K (y(t) - H x(t|t-1)), x(t+1|t) = Phi x(t|t), i.e. x(t+1|t+1) = Psi_f x(t|t) + K y(t+1).
@@ -155,6 +177,7 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
 
     gain: SteadyStateGain | None = None
     factor_type = SteadyStateFactor
+    result_type = SteadyStateResult
 
     def __check_init__(self):
         check_steady_state_gain(self.gain, none=True)
@@ -195,6 +218,7 @@ class SteadyStateKalmanFilter(AbstractGaussianFilter):
         z = jax.scipy.linalg.solve_triangular(S_chol, e, lower=True)
         loglik = gaussian_loglik(z, S_chol, e.shape[0])
         x_next = g.Phi @ x_post
-        status = finite_status(x_next, loglik)
+        no_gain = status_where(g.status != 0, SteadyStateStatus.NO_STEADY_STATE)
+        status = finite_status(x_next, loglik) | no_gain
         out = StepOutput(x, g.Sigma, x_post, g.filtered_cov, e, g.innovation_cov, loglik, status)
         return x_next, factor, out

@@ -17,6 +17,8 @@ x(0|0) = x(0|-1) + K (y(0) - H x(0|-1)); measurements y(0), ..., y(N) (N + 1 sam
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -28,6 +30,7 @@ from jaxest._status import StatusOverSteps
 from jaxest.filters.steady_state import (
     SteadyStateGain,
     SteadyStateKalmanFilter,
+    SteadyStateStatus,
     check_steady_state_gain,
     steady_state_gain,
 )
@@ -120,8 +123,11 @@ def backward_gain_sum(
 
 class SteadyStateSmootherResult(StatusOverSteps):
     """x(t|N), x(t|t) and eps(t) for t = 0..N (eq 15), and the steady-state filter's
-    :class:`~jaxest.Status` bits per step (``NONFINITE`` where the gain has no accurate
-    solution: :func:`~jaxest.filters.steady_state.steady_state_gain` gives NaN then)."""
+    :data:`~jaxest.filters.steady_state.SteadyStateStatus` bits per step (``NO_STEADY_STATE``
+    and ``NONFINITE`` where the gain has no accurate solution:
+    :func:`~jaxest.filters.steady_state.steady_state_gain` gives NaN then)."""
+
+    flags: ClassVar = SteadyStateStatus
 
     mean: Float[Array, "T n"]
     filtered_mean: Float[Array, "T n"]
