@@ -37,7 +37,10 @@ def _parser() -> argparse.ArgumentParser:
         "--out", type=Path, default=Path("results"), help="output directory (default: results)"
     )
     rep.add_argument(
-        "--runs", type=int, default=None, help="Monte Carlo runs (default: each study's own)"
+        "--runs",
+        type=_at_least_one,
+        default=None,
+        help="Monte Carlo runs (default: each study's own)",
     )
     rep.add_argument("--seed", type=int, default=0, help="PRNG seed (default: 0)")
     rep.add_argument("--quick", action="store_true", help="small, fast versions of every study")
@@ -51,7 +54,7 @@ def _parser() -> argparse.ArgumentParser:
     )
     rep.add_argument(
         "--jobs",
-        type=int,
+        type=_at_least_one,
         default=1,
         help="studies run at once, each in its own process (default: 1); the studies whose "
         "tables report wall times run alone after the others",
@@ -59,6 +62,18 @@ def _parser() -> argparse.ArgumentParser:
     # a worker of --jobs: write this study's index entry to FILE, leave announcements to the parent
     rep.add_argument("--worker", type=Path, default=None, help=argparse.SUPPRESS)
     return parser
+
+
+def _at_least_one(text: str) -> int:
+    """An option's whole number of at least 1 (argparse names the option and exits with 2, as
+    for its own errors: ``--jobs 0`` exited with 1 and no usage line)."""
+    try:
+        number = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if number < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {number}")
+    return number
 
 
 def _describe(name: str) -> str:
@@ -305,18 +320,15 @@ def _check_data(directory: Path, names) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args = parser.parse_args(argv)
     names = list(dict.fromkeys(studies.STUDIES if "all" in args.study else args.study))  # once each
-    if args.runs is not None and args.runs < 1:
-        raise SystemExit("--runs: must be at least 1")
-    if args.jobs < 1:
-        raise SystemExit("--jobs: must be at least 1")
     # an option for a study not chosen was ignored without a word (a --jobs worker gets every
     # option the parent was given, whatever its study)
     for option, given, study in (("--b747-printed", args.b747_printed, "adaptive"),
                                  ("--data", args.data is not None, "svd-ekf")):  # fmt: skip
         if given and study not in names and args.worker is None:
-            raise SystemExit(f"{option}: only the {study} study reads it, and it is not chosen")
+            parser.error(f"{option}: only the {study} study reads it, and it is not chosen")
     if args.out.exists() and not args.out.is_dir():  # mkdir said "File exists"
         raise SystemExit(f"--out: {args.out} is a file, not a directory")
     try:

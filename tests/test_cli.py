@@ -25,10 +25,25 @@ def test_reproduce_help_lists_every_study(capsys):
         assert option in text
 
 
-def test_unknown_study_is_refused(capsys):
+@pytest.mark.parametrize(
+    "argv,message",
+    [
+        (["nosuch"], "invalid choice"),
+        (["filters", "--jobs", "0"], "argument --jobs: must be at least 1, got 0"),
+        (["filters", "--runs", "-3"], "argument --runs: must be at least 1, got -3"),
+        (["filters", "--jobs", "two"], "argument --jobs: expected a whole number, got 'two'"),
+        # an option for a study not chosen was ignored without a word
+        (["wiener", "--b747-printed"], "--b747-printed: only the adaptive study reads it"),
+        (["wiener", "--data", "."], "--data: only the svd-ekf study reads it"),
+    ],
+)
+def test_usage_errors_exit_with_2_and_the_usage(capsys, argv, message):
+    """Every mistake in the command line, argparse's or ours, exits with 2 and prints the usage
+    (``--jobs 0`` and an option for a study not chosen exited with 1 and no usage line)."""
     with pytest.raises(SystemExit) as exit_:
-        cli.main(["reproduce", "nosuch"])
-    assert exit_.value.code != 0 and "invalid choice" in capsys.readouterr().err
+        cli.main(["reproduce", *argv])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err.startswith("usage:") and message in err, err
 
 
 def test_an_output_folder_that_cannot_be_made_is_named(tmp_path):
@@ -53,11 +68,6 @@ def test_an_output_folder_that_cannot_be_written_and_bad_data_are_named(tmp_path
         )
     with pytest.raises(SystemExit, match="^--data: .* lacks fAttasElv1_pqrDot.asc, "):
         cli.main(["reproduce", "svd-ekf", "--quick", "--out", out, "--data", str(tmp_path)])
-    # an option for a study not chosen was ignored without a word
-    with pytest.raises(SystemExit, match="^--b747-printed: only the adaptive study reads it"):
-        cli.main(["reproduce", "wiener", "--quick", "--out", out, "--b747-printed"])
-    with pytest.raises(SystemExit, match="^--data: only the svd-ekf study reads it"):
-        cli.main(["reproduce", "wiener", "--quick", "--out", out, "--data", str(tmp_path)])
 
 
 @pytest.mark.slow
