@@ -211,8 +211,9 @@ def check_sequence(name: str, value, length=None, dim=None, dim_source: str = ""
 
 def check_inputs(inputs, length: int, steps: str) -> None:
     """``inputs``: an array, or a pytree of arrays, each with a leading time axis of ``length``
-    steps (u_k is the k-th slice of every leaf); ``steps`` says where ``length`` comes from
-    ("the measurements have 10")."""
+    steps (u_k is the k-th slice of every leaf) and, where concrete, finite (an input is never
+    missing: a NaN one made every later estimate NaN, flagged only as ``NONFINITE``); ``steps``
+    says where ``length`` comes from ("the measurements have 10")."""
     leaves = jax.tree_util.tree_leaves_with_path(inputs)
     if not leaves:
         raise ValueError("inputs: holds no arrays; pass None for a model without inputs")
@@ -225,6 +226,11 @@ def check_inputs(inputs, length: int, steps: str) -> None:
             )
         if shape[0] != length:
             raise ValueError(f"{name}: has {shape[0]} time steps but {steps}{_ONE_INPUT_PER_STEP}")
+        if is_concrete(leaf) and not np.all(np.isfinite(np.asarray(leaf))):
+            raise ValueError(
+                f"{name}: has NaN or infinite entries (an input is never missing; NaN marks a "
+                "missing measurement in ys only)"
+            )
 
 
 def check_measurements(ys):

@@ -129,6 +129,15 @@ def test_inputs_may_be_a_pytree_and_missing_inputs_are_named():
         je.run(je.EKF(), by_dict, ys, prior=prior, inputs={**inputs, "b": b[:5]})
     with pytest.raises(ValueError, match=r"^inputs\['a'\]: expected a leading time axis"):
         je.simulate(by_dict, prior, T, jax.random.key(0), inputs={**inputs, "a": 2.0})
+    # a NaN input made every later estimate NaN, flagged only as NONFINITE
+    gappy = {**inputs, "b": b.at[3, 1].set(jnp.nan)}
+    for call in (
+        lambda: je.run(je.EKF(), by_dict, ys, prior=prior, inputs=gappy),
+        lambda: je.simulate(by_dict, prior, T, jax.random.key(0), inputs=gappy),
+        lambda: je.rts_smooth(by_dict, filtered, inputs=gappy),
+    ):
+        with pytest.raises(ValueError, match=r"^inputs\['b'\]: has NaN or infinite entries"):
+            call()
     with pytest.raises(ValueError, match="^inputs: the model cannot be evaluated with u = None"):
         je.run(je.EKF(), by_array, ys, prior=prior)
     with pytest.raises(ValueError, match="^inputs: the model cannot be evaluated with u = None"):
