@@ -200,6 +200,33 @@ def acos(x: Interval) -> Interval:
     return _widen(jnp.arccos(x.hi), jnp.arccos(x.lo), _LIBM_ULPS)
 
 
+def erf_inv(y: Interval) -> Interval:
+    """The inverse of erf over y restricted to [-1, 1] (+-inf at +-1; a y wholly outside it
+    gives NaN), increasing. XLA's was measured 5e5 ulps off near 1 in float64, so it only
+    proposes each end: XLA's value moved outward by 4^k eps |x| (k = 1..13, then a smallest
+    normal) is taken for the lower end x_lo where erf's enclosure at x_lo lies at or below
+    y_lo, the least moved that does (erf increasing: x_lo <= erf^-1(y_lo)); none does: -inf.
+    The upper end likewise."""
+    y = _unit_domain(lift(y))
+    erf = _unary_increasing["erf"]
+    steps = 4.0 ** jnp.arange(1, 14, dtype=y.dtype)
+
+    def end(v, outward):  # outward: -1 for the lower end, +1 for the upper
+        x = jax.scipy.special.erfinv(v)[..., None]
+        tiny = jnp.finfo(y.dtype).tiny
+        candidates = x + outward * (steps * _eps(y.lo) * jnp.abs(x) + tiny)
+        at = _increasing(erf, Interval(candidates, candidates))
+        holds = at.hi <= v[..., None] if outward < 0 else at.lo >= v[..., None]
+        chosen = jnp.take_along_axis(candidates, jnp.argmax(holds, -1)[..., None], -1)[..., 0]
+        bound = jnp.where(jnp.any(holds, -1), chosen, outward * jnp.inf)
+        return jnp.where(jnp.isnan(x[..., 0]), jnp.nan, bound)
+
+    empty = y.lo > y.hi  # wholly outside [-1, 1]
+    return Interval(
+        jnp.where(empty, jnp.nan, end(y.lo, -1)), jnp.where(empty, jnp.nan, end(y.hi, 1))
+    )
+
+
 def _half(x: Interval) -> Interval:
     return Interval(0.5 * x.lo, 0.5 * x.hi)  # exact in binary floating point, but on underflow
 
@@ -224,6 +251,13 @@ def abs_(x: Interval) -> Interval:
     straddles = (x.lo <= 0) & (x.hi >= 0)
     mig = jnp.where(straddles, 0.0, jnp.minimum(jnp.abs(x.lo), jnp.abs(x.hi)))
     return Interval(mig, x.mag())
+
+
+def is_finite(x: Interval) -> Interval:
+    """Certainly finite where both ends are; possibly finite but where the interval is the one
+    point +inf or -inf. A NaN end (a failed enclosure) leaves it open: [False, True]."""
+    possible = ~((x.lo == x.hi) & jnp.isinf(x.lo))
+    return Interval(jnp.isfinite(x.lo) & jnp.isfinite(x.hi), possible)
 
 
 def _clip_unit(out: Interval) -> Interval:
@@ -283,6 +317,34 @@ def atan2(y: Interval, x: Interval) -> Interval:
     return Interval(jnp.where(cut, -_up(pi), out.lo), jnp.where(cut, _up(pi), out.hi))
 
 
+def rem(x, y) -> Interval:
+    """``lax.rem`` (C's fmod, ``%`` and ``jnp.mod`` build on it): x - y trunc(x / y), exact in
+    floating point, of x's sign and below |y| in size. For a divisor known exactly (an angle
+    wrapped by 2 pi) it increases with x between the nonzero multiples of y, where it drops by
+    |y|: applied to both ends where x's interval holds none (:func:`_rem_wraps`); else, and for
+    a divisor that is an interval, every value of x's sign below the largest |y|. A divisor
+    that may be 0 gives NaN (flagged)."""
+    x, y = lift(x), lift(y)
+    at_ends = Interval(lax.rem(x.lo, y.lo), lax.rem(x.hi, y.lo))
+    size = y.mag()
+    below = Interval(jnp.where(x.lo >= 0, 0, -size), jnp.where(x.hi <= 0, 0, size))
+    wraps = _rem_wraps(x, y)
+    out = Interval(jnp.where(wraps, below.lo, at_ends.lo), jnp.where(wraps, below.hi, at_ends.hi))
+    if not jnp.issubdtype(out.dtype, jnp.inexact):
+        return out
+    zero = (y.lo <= 0) & (y.hi >= 0)
+    return Interval(jnp.where(zero, jnp.nan, out.lo), jnp.where(zero, jnp.nan, out.hi))
+
+
+def _rem_wraps(x: Interval, y: Interval):
+    """Whether rem(., y) may drop over x's interval: y not one value, or x's interval holding a
+    nonzero multiple of it, where the ends' remainders are out of order or the interval is as
+    wide as |y| (its width rounded up; narrower, it holds at most one multiple, past which the
+    upper end's remainder is the lower's minus |y| plus the width)."""
+    out_of_order = lax.rem(x.lo, y.lo) > lax.rem(x.hi, y.lo)
+    return (y.lo != y.hi) | out_of_order | (_up(x.hi - x.lo) >= jnp.abs(y.lo))
+
+
 def max_(a, b) -> Interval:
     a, b = lift(a), lift(b)
     return Interval(jnp.maximum(a.lo, b.lo), jnp.maximum(a.hi, b.hi))
@@ -302,7 +364,10 @@ def min_(a, b) -> Interval:
 def _widen_sum(lo, hi, magnitude, terms) -> Interval:
     """Endpoints of a floating-point sum of ``terms`` terms moved outward by the bound
     terms * eps * sum|x_i| of its rounding error (relative to sum|x_i|, not |sum x_i|: a
-    cancelling sum has an error far larger than eps |sum|), then one ulp."""
+    cancelling sum has an error far larger than eps |sum|), then one ulp; integers (a running
+    count, ``jnp.piecewise``'s) are exact."""
+    if not jnp.issubdtype(jnp.result_type(lo), jnp.inexact):
+        return Interval(lo, hi)
     slack = terms * _eps(lo) * magnitude
     return Interval(_down(lo - slack), _up(hi + slack))
 
@@ -319,6 +384,128 @@ def cumsum(x: Interval, axis: int, reverse: bool) -> Interval:
     running = lambda v: lax.cumsum(v, axis=axis, reverse=reverse)
     magnitude = running(jnp.maximum(jnp.abs(x.lo), jnp.abs(x.hi)))
     return _widen_sum(running(x.lo), running(x.hi), magnitude, x.shape[axis])
+
+
+def cumprod(x: Interval, axis: int, reverse: bool) -> Interval:
+    """Running products along ``axis``: interval products (:func:`mul`, each rounded outward) of
+    the running product and the next term, in the tree ``lax.associative_scan`` takes (any
+    grouping of exact interval products holds the product of the sets)."""
+    return lax.associative_scan(mul, x, reverse=reverse, axis=axis)
+
+
+def cumulative_extremum(x: Interval, name: str, axis: int, reverse: bool) -> Interval:
+    """``cummax`` / ``cummin``: non-decreasing in every entry, so applied to both ends (exact)."""
+    running = {"cummax": lax.cummax, "cummin": lax.cummin}[name]
+    return Interval(
+        running(x.lo, axis=axis, reverse=reverse), running(x.hi, axis=axis, reverse=reverse)
+    )
+
+
+def _last_axis_pairs(x: Interval, axis: int):
+    """``(a_lo, a_hi, b_lo, b_hi)``: x's entries along ``axis`` moved last and paired, a the
+    ``[..., i, None]`` and b the ``[..., None, j]`` entries."""
+    lo, hi = jnp.moveaxis(x.lo, axis, -1), jnp.moveaxis(x.hi, axis, -1)
+    return lo[..., :, None], hi[..., :, None], lo[..., None, :], hi[..., None, :]
+
+
+def sort(operands, dimension: int, is_stable: bool, num_keys: int) -> list:
+    """``lax.sort`` of one key along ``dimension``, with payloads (``jnp.argsort``'s indices, a
+    derivative's permutation): the k-th smallest of the key's intervals lies in [k-th smallest
+    lower end, k-th smallest upper end] (each order statistic is non-decreasing in every entry).
+    A payload follows the order of the lower ends where no two of the key's intervals along
+    ``dimension`` meet (the order is then the same over the box); in a slice where two may,
+    any entry may come to any place, and each payload's result is the hull of its slice. A key
+    interval with a NaN end (a failed enclosure) makes its slice NaN."""
+    if num_keys != 1:
+        raise NotImplementedError("interval evaluation: sort with more than one key")
+    key, payloads = lift(operands[0]), [lift(v) for v in operands[1:]]
+    bind = lambda *vs: lax.sort_p.bind(*vs, dimension=dimension, is_stable=is_stable, num_keys=1)
+    order = lax.broadcasted_iota(jnp.int32, key.shape, dimension)
+    (lo,), (hi,), (_, perm) = bind(key.lo), bind(key.hi), bind(key.lo, order)
+    a_lo, a_hi, b_lo, b_hi = _last_axis_pairs(key, dimension)
+    distinct = ~jnp.eye(key.shape[dimension], dtype=bool)
+    meet = jnp.any(distinct & (a_lo <= b_hi) & (b_lo <= a_hi), axis=(-2, -1))
+    nan = jnp.any(jnp.isnan(key.lo) | jnp.isnan(key.hi), axis=dimension)
+    meet, nan = jnp.expand_dims(meet, dimension), jnp.expand_dims(nan, dimension)
+    out = [Interval(jnp.where(nan, jnp.nan, lo), jnp.where(nan, jnp.nan, hi))]
+    for p in payloads:
+        take = lambda v: jnp.take_along_axis(v, perm, axis=dimension)
+        hull_lo = jnp.min(p.lo, axis=dimension, keepdims=True)
+        hull_hi = jnp.max(p.hi, axis=dimension, keepdims=True)
+        out.append(
+            Interval(jnp.where(meet, hull_lo, take(p.lo)), jnp.where(meet, hull_hi, take(p.hi)))
+        )
+    return out
+
+
+def arg_extremum(x: Interval, name: str, axis: int, index_dtype) -> Interval:
+    """``argmax`` / ``argmin`` along ``axis``: the integer interval from the first to the last
+    index whose entry may be the largest (smallest), the first of those tied: an entry whose
+    interval reaches the largest lower end and passes every lower end before it. A NaN end (a
+    failed enclosure, or a NaN, which ``argmax`` takes) may be any."""
+    x = x if name == "argmax" else -x
+    lo, hi = jnp.moveaxis(x.lo, axis, -1), jnp.moveaxis(x.hi, axis, -1)
+    top = jnp.max(lo, axis=-1, keepdims=True)
+    before = lax.cummax(
+        jnp.concatenate([jnp.full_like(lo[..., :1], _extremes(lo.dtype)[1]), lo[..., :-1]], -1),
+        axis=lo.ndim - 1,
+    )
+    nan = jnp.any(jnp.isnan(lo) | jnp.isnan(hi), axis=-1, keepdims=True)
+    may = ((hi >= top) & (hi > before)) | nan
+    first = jnp.argmax(may, axis=-1)
+    last = lo.shape[-1] - 1 - jnp.argmax(may[..., ::-1], axis=-1)
+    return Interval(first.astype(index_dtype), last.astype(index_dtype))
+
+
+def _at_uncertain_index(primitive, x, indices, params) -> Interval:
+    """``gather`` / ``dynamic_slice`` with an integer index known as an interval (an
+    ``argmax`` 's, a ``sort`` 's permutation): exact where every index is one value; else
+    anything in x may be picked, so its hull (with what the end indices pick: a fill value out
+    of bounds)."""
+    x = lift(x)
+    ends = [[i.lo if isinstance(i, Interval) else i for i in indices],
+            [i.hi if isinstance(i, Interval) else i for i in indices]]  # fmt: skip
+    at = [[primitive.bind(v, *e, **params) for e in ends] for v in (x.lo, x.hi)]
+    exact = jnp.all(
+        jnp.asarray([jnp.all(i.lo == i.hi) for i in indices if isinstance(i, Interval)])
+    )
+    lo = jnp.minimum(jnp.min(x.lo), jnp.minimum(*at[0]))
+    hi = jnp.maximum(jnp.max(x.hi), jnp.maximum(*at[1]))
+    return Interval(jnp.where(exact, at[0][0], lo), jnp.where(exact, at[1][0], hi))
+
+
+def _scatter(primitive, operand, indices, updates, **params) -> Interval:
+    """``scatter-add`` (the transpose of a gather, in a derivative) and ``scatter``: with exact
+    indices, applied to both ends (the sum widened as :func:`_widen_sum` widens one of every
+    update and the operand); with indices known as an interval (an ``argmax`` 's, a ``sort`` 's
+    permutation) that may hold more than one value, any update may land anywhere: an entry is
+    the operand's plus any of the updates' negative to positive parts (``scatter``: the hull
+    of the operand and every update)."""
+    operand, updates = lift(operand), lift(updates)
+    at = indices.lo if isinstance(indices, Interval) else indices
+    bind = lambda a, b: primitive.bind(a, at, b, **params)
+    magnitude = lambda x: jnp.maximum(jnp.abs(x.lo), jnp.abs(x.hi))
+    adds = primitive.name != "scatter"
+    if adds:
+        exact = _widen_sum(
+            bind(operand.lo, updates.lo), bind(operand.hi, updates.hi),
+            bind(magnitude(operand), magnitude(updates)), updates.lo.size + 1,
+        )  # fmt: skip
+    else:
+        exact = Interval(bind(operand.lo, updates.lo), bind(operand.hi, updates.hi))
+    if not isinstance(indices, Interval):
+        return exact
+    if adds:
+        anywhere = _widen_sum(
+            operand.lo + jnp.sum(jnp.minimum(updates.lo, 0)),
+            operand.hi + jnp.sum(jnp.maximum(updates.hi, 0)),
+            magnitude(operand) + jnp.sum(magnitude(updates)), updates.lo.size + 1,
+        )  # fmt: skip
+    else:
+        anywhere = Interval(jnp.minimum(operand.lo, jnp.min(updates.lo)),
+                            jnp.maximum(operand.hi, jnp.max(updates.hi)))  # fmt: skip
+    one = jnp.all(indices.lo == indices.hi)
+    return Interval(jnp.where(one, exact.lo, anywhere.lo), jnp.where(one, exact.hi, anywhere.hi))
 
 
 def dot_general(a, b, **params) -> Interval:
@@ -351,14 +538,16 @@ def _compare(a, b, name) -> Interval:
         nan = jnp.isnan(a.lo) | jnp.isnan(a.hi)
         return Interval(~nan, ~nan) if name == "eq" else Interval(nan, nan)
     a, b = lift(a), lift(b)
+    # a NaN end (a failed enclosure) may hide any value: the comparison may go either way
+    unknown = jnp.isnan(a.lo) | jnp.isnan(a.hi) | jnp.isnan(b.lo) | jnp.isnan(b.hi)
     if name in ("lt", "le"):
         strict = name == "lt"
         certain = a.hi < b.lo if strict else a.hi <= b.lo
         possible = a.lo < b.hi if strict else a.lo <= b.hi
-        return Interval(certain, possible)
+        return Interval(certain, possible | unknown)
     if name in ("gt", "ge"):
         return _compare(b, a, "lt" if name == "gt" else "le")
-    overlap = (a.lo <= b.hi) & (b.lo <= a.hi)
+    overlap = (a.lo <= b.hi) & (b.lo <= a.hi) | unknown
     exact = (a.lo == a.hi) & (b.lo == b.hi) & (a.lo == b.lo)
     if name == "eq":
         return Interval(exact, overlap)
@@ -469,13 +658,16 @@ def _rule(name: str) -> Callable | None:
     simple = {
         "add": add, "add_any": add, "sub": sub, "mul": mul, "div": div, "sqrt": sqrt,
         "log": log, "abs": abs_, "sin": sin, "cos": cos, "tan": tan, "atan2": atan2,
-        "asin": asin, "acos": acos, "atanh": atanh, "acosh": acosh,
-        "max": max_, "min": min_, "clamp": clamp, "select_n": select_n,
+        "asin": asin, "acos": acos, "atanh": atanh, "acosh": acosh, "erf_inv": erf_inv,
+        "max": max_, "min": min_, "clamp": clamp, "select_n": select_n, "rem": rem,
         "neg": lambda x: -lift(x),
         "square": lambda x: integer_pow(lift(x), 2),
         "sign": lambda x: Interval(jnp.sign(x.lo), jnp.sign(x.hi)),
         "rsqrt": lambda x: div(point(jnp.ones_like(x.lo)), sqrt(x)),
         "not": lambda x: Interval(~x.hi, ~x.lo),
+        "is_finite": is_finite,
+        # its value (remainder_bound differentiates fn without it: with_pairwise_extrema)
+        "stop_gradient": lambda x: x,
         "and": lambda a, b: Interval(lift(a).lo & lift(b).lo, lift(a).hi & lift(b).hi),
         "or": lambda a, b: Interval(lift(a).lo | lift(b).lo, lift(a).hi | lift(b).hi),
     }  # fmt: skip
@@ -498,7 +690,8 @@ _NON_SMOOTH = {
     "abs": "kink", "max": "kink", "min": "kink", "clamp": "kink", "reduce_max": "kink",
     "reduce_min": "kink",
     "sign": "jump", "select_n": "jump", "atan2": "jump", "floor": "jump", "ceil": "jump",
-    "round": "jump",
+    "round": "jump", "cummax": "kink", "cummin": "kink", "sort": "kink", "argmax": "jump",
+    "argmin": "jump", "rem": "jump",
 }  # fmt: skip
 
 
@@ -539,6 +732,8 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     if name == "clamp":
         low, x, high = invals
         return _NON_SMOOTH[name], jnp.any(_may_cross(x, low) | _may_cross(x, high))
+    if name == "rem":  # where it wraps
+        return _NON_SMOOTH[name], jnp.any(_rem_wraps(lift(invals[0]), lift(invals[1])))
     if name == "atan2":  # pi on the negative x axis, near -pi just below it; undefined at 0
         y, x = lift(invals[0]), lift(invals[1])
         across_the_cut = (x.lo < 0) & (y.lo < 0) & (y.hi >= 0)
@@ -552,6 +747,27 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
     if name in _ROUNDING:  # a step at every integer (round: every half-integer)
         rounded = _both(_ROUNDING[name], x, **params)
         return _NON_SMOOTH[name], jnp.any(rounded.lo != rounded.hi)
+    if name in ("argmax", "argmin"):  # an index that may change
+        index = arg_extremum(x, name, params["axes"][0], params["index_dtype"])
+        return _NON_SMOOTH[name], jnp.any(index.lo != index.hi)
+    if name == "sort":  # the order of two entries that may cross may change (payloads: jump)
+        a_lo, a_hi, b_lo, b_hi = _last_axis_pairs(x, params["dimension"])
+        cross = _may_cross(Interval(a_lo, a_hi), Interval(b_lo, b_hi))
+        kind = "jump" if len(invals) > 1 else "kink"  # argsort's indices jump
+        return kind, jnp.any(cross & ~jnp.eye(x.shape[params["dimension"]], dtype=bool))
+    if name in ("cummax", "cummin"):  # more than one entry so far may be the extremum
+        x = x if name == "cummax" else -x
+        a_lo, a_hi, _, _ = _last_axis_pairs(x, params["axis"])
+        running_lo = lax.cummax(jnp.moveaxis(x.lo, params["axis"], -1), axis=x.lo.ndim - 1,
+                                reverse=params["reverse"])[..., None, :]  # fmt: skip
+        n = x.shape[params["axis"]]
+        so_far = (
+            jnp.tril(jnp.ones((n, n), bool)).T
+            if not params["reverse"]
+            else jnp.tril(jnp.ones((n, n), bool))
+        )
+        candidates = jnp.sum(so_far & (a_hi >= running_lo), axis=-2)
+        return _NON_SMOOTH[name], jnp.any(candidates > 1)
     if name in ("reduce_max", "reduce_min"):
         x, axes = (x if name == "reduce_max" else -x), params["axes"]
         # more than one entry can be the largest: the maximum switches between them
@@ -648,6 +864,14 @@ def _apply(eqn, invals, kinks=None):
         return reduce_sum(invals[0], params["axes"])
     if name == "cumsum":
         return cumsum(invals[0], params["axis"], params["reverse"])
+    if name == "cumprod":
+        return cumprod(invals[0], params["axis"], params["reverse"])
+    if name in ("cummax", "cummin"):
+        return cumulative_extremum(invals[0], name, params["axis"], params["reverse"])
+    if name == "sort":
+        return sort(invals, params["dimension"], params["is_stable"], params["num_keys"])
+    if name in ("argmax", "argmin"):
+        return arg_extremum(invals[0], name, params["axes"][0], params["index_dtype"])
     if name == "dot_general":
         return dot_general(*invals, **params)
     if name == "convert_element_type":
@@ -661,7 +885,9 @@ def _apply(eqn, invals, kinks=None):
     if name in _structural:
         x, *rest = invals
         if any(isinstance(r, Interval) for r in rest):
-            raise NotImplementedError(f"interval evaluation: {name} with an interval index")
+            if name not in ("gather", "dynamic_slice"):
+                raise NotImplementedError(f"interval evaluation: {name} with an interval index")
+            return _at_uncertain_index(eqn.primitive, x, rest, params)
         return Interval(
             eqn.primitive.bind(x.lo, *rest, **params), eqn.primitive.bind(x.hi, *rest, **params)
         )
@@ -673,18 +899,8 @@ def _apply(eqn, invals, kinks=None):
             eqn.primitive.bind(*[x.lo for x in xs], **params),
             eqn.primitive.bind(*[x.hi for x in xs], **params),
         )
-    if name in ("scatter-add", "scatter_add"):
-        operand, indices, updates = lift(invals[0]), invals[1], lift(invals[2])
-        if isinstance(indices, Interval):
-            raise NotImplementedError("interval evaluation: scatter-add with an interval index")
-        bind = lambda a, b: eqn.primitive.bind(a, indices, b, **params)
-        magnitude = lambda x: jnp.maximum(jnp.abs(x.lo), jnp.abs(x.hi))
-        return _widen_sum(
-            bind(operand.lo, updates.lo),
-            bind(operand.hi, updates.hi),
-            bind(magnitude(operand), magnitude(updates)),
-            updates.lo.size + 1,
-        )
+    if name in ("scatter-add", "scatter_add", "scatter"):
+        return _scatter(eqn.primitive, *invals, **params)
     if name in ("split", "unstack"):  # unstack: the transpose of jnp.stack, in a Hessian
         x = invals[0]
         los, his = eqn.primitive.bind(x.lo, **params), eqn.primitive.bind(x.hi, **params)
@@ -786,11 +1002,13 @@ def _pairwise(op, x, axes):
 
 
 def _holds_extrema(jaxpr) -> bool:
-    return any_equation(jaxpr, lambda eqn: eqn.primitive.name in _EXTREMA)
+    """Whether ``jaxpr`` (or one inside it) holds what :func:`_eval_pairwise` rewrites."""
+    return any_equation(jaxpr, lambda eqn: eqn.primitive.name in (*_EXTREMA, "stop_gradient"))
 
 
 def _eval_pairwise(jaxpr, consts, *args) -> list:
-    """Evaluate ``jaxpr`` with each ``reduce_max`` / ``reduce_min`` as :func:`_pairwise`."""
+    """Evaluate ``jaxpr`` with each ``reduce_max`` / ``reduce_min`` as :func:`_pairwise` and
+    each ``stop_gradient`` as the identity (outside a custom derivative's primal)."""
     env = {}
     read = lambda v: v.val if isinstance(v, jex.Literal) else env[v]
     env.update(zip(jaxpr.constvars, consts, strict=True))
@@ -801,6 +1019,8 @@ def _eval_pairwise(jaxpr, consts, *args) -> list:
         holds_extrema = called is not None and _holds_extrema(called[0])
         if name in _EXTREMA:
             outs = [_pairwise(_EXTREMA[name], invals[0], eqn.params["axes"])]
+        elif name == "stop_gradient":
+            outs = invals
         elif name == "scan" and holds_extrema:
             outs = _scan_pairwise(eqn.params, invals)
         elif name == "cond" and any(_holds_extrema(b.jaxpr) for b in eqn.params["branches"]):
@@ -843,7 +1063,12 @@ def with_pairwise_extrema(fn: Callable, box: Interval, args) -> tuple[Callable, 
     The derivative is not, over intervals: JAX writes a reduction's as the tangents of the
     largest entries divided by how many there are, a count whose enclosure reaches 0 wherever
     two entries may tie over the box, so the enclosure of the derivative, and the remainder
-    bound, was infinite; a two-argument maximum's is a choice between its two arguments'."""
+    bound, was infinite; a two-argument maximum's is a choice between its two arguments'.
+    Every ``lax.stop_gradient`` (outside a custom derivative's primal, whose rule is kept) is
+    the identity, which it is for values: JAX differentiates it as a constant, so fn's JAX
+    derivatives are not those of its values (stop_gradient(x) * x: JAX's Hessian 0, the true
+    one 2), and a Taylor bound needs the true ones; :func:`remainder_bound` adds what JAX's
+    Jacobian, the filter's, differs from the true one by."""
     example, arg_shapes = _shapes(box, args)
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(example, *arg_shapes)
     if not _holds_extrema(closed.jaxpr):
@@ -918,26 +1143,45 @@ def remainder_bound(
     (:func:`jaxest._jaxpr.zero_outputs`: an affine ``fn`` such as ``H @ x + b``) is affine: its
     bound is exactly zero, and nothing else is computed (the enclosure below is still traced,
     so a primitive without an interval rule raises as it would otherwise, and then discarded).
+
+    Across a ``stop_gradient`` JAX's Jacobian J0(c), the filter's, is not that of fn's values:
+    the bound is that of fn without it (:func:`with_pairwise_extrema`) plus
+    sum_j |J_ij(c) - J0_ij(c)| r_j, both Jacobians enclosed at c.
     """
     check_callable("fn", fn)
     check_operands(shape, {"center": center})
     box = bounding_box(center, shape)
+    original = fn
     fn, primal = with_pairwise_extrema(fn, box, args)
     hessian = _derivative_jaxpr(jax.hessian, fn, box, args)
     hess = lift(eval_jaxpr(hessian.jaxpr, hessian.consts, box, *args)[0])  # (m, n, n)
     found = kinks_over(primal, box, *args)
+    r = lambda: _up(jnp.sqrt(jnp.diagonal(shape)))
+    # sum_j |spread_ij| r_j: the bound of spread (x - c) over the box
+    first_order = lambda spread: reduce_sum(
+        mul(spread, Interval(-r()[None], r()[None])), (1,)
+    ).mag()
     if found is None and zero_outputs(hessian.jaxpr):
-        return jnp.zeros(hess.shape[:-2], center.dtype)
-    r = _up(jnp.sqrt(jnp.diagonal(shape)))
-    rr = _up(r[:, None] * r[None, :])
-    diagonal = jnp.eye(r.shape[0], dtype=bool)
-    products = Interval(jnp.where(diagonal, 0.0, -rr), rr)
-    quadratic = reduce_sum(mul(hess, Interval(products.lo[None], products.hi[None])), (1, 2))
-    half = 0.5 * quadratic.mag()  # exact but for subnormals, which _up covers
-    bound = jnp.where(half == 0, 0.0, _up(half))  # NaN (a failed enclosure) stays NaN
-    if found is None:
+        bound = jnp.zeros(hess.shape[:-2], center.dtype)
+    else:
+        rr = _up(r()[:, None] * r()[None, :])
+        diagonal = jnp.eye(rr.shape[0], dtype=bool)
+        products = Interval(jnp.where(diagonal, 0.0, -rr), rr)
+        quadratic = reduce_sum(mul(hess, Interval(products.lo[None], products.hi[None])), (1, 2))
+        half = 0.5 * quadratic.mag()  # exact but for subnormals, which _up covers
+        bound = jnp.where(half == 0, 0.0, _up(half))  # NaN (a failed enclosure) stays NaN
+    if found is not None:
+        kink, jump = found
+        spread = sub(*_derivative_enclosures(jax.jacfwd, fn, [box, point(center)], *args))
+        bound = jnp.where(jump, jnp.nan, jnp.where(kink, _up(first_order(spread)), bound))
+    example, arg_shapes = _shapes(box, args)
+    stops = lambda eqn: eqn.primitive.name == "stop_gradient"
+    if fn is original or not any_equation(
+        jax.make_jaxpr(original)(example, *arg_shapes).jaxpr, stops
+    ):
         return bound
-    kink, jump = found
-    spread = sub(*_derivative_enclosures(jax.jacfwd, fn, [box, point(center)], *args))  # (m, n)
-    first_order = reduce_sum(mul(spread, Interval(-r[None], r[None])), (1,)).mag()
-    return jnp.where(jump, jnp.nan, jnp.where(kink, _up(first_order), bound))
+    # the filter linearises with JAX's Jacobian of the original fn, J0(c), which is not the
+    # rewritten fn's J(c) across a stop_gradient: its remainder is the rewritten fn's plus
+    # (J(c) - J0(c))(x - c)
+    at_center = lambda g: _derivative_enclosures(jax.jacfwd, g, [point(center)], *args)[0]
+    return _up(bound + first_order(sub(at_center(fn), at_center(original))))
