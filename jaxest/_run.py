@@ -11,6 +11,7 @@ holds no per-step covariances.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -18,6 +19,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from equinox.internal import unvmap_any  # what eqx.error_if itself reads a batch with
 
 from jaxest._checks import check_flag, check_key, concrete_k0, first_input
 from jaxest._estimator import (
@@ -26,6 +28,7 @@ from jaxest._estimator import (
     AbstractResult,
     associative_outputs,
 )
+from jaxest._status import StatusFlag
 from jaxest.linalg import working_precision_by_default
 
 
@@ -74,6 +77,8 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
         once) and the status."""
         fn = None if save.fn is None else jax.vmap(save.fn) if stacked else save.fn
         saved = None if fn is None else fn(output)
+        if jnp.result_type(output.status) != jnp.int32:  # named by check_step_protocol
+            raise TypeError(f"output.status is {jnp.result_type(output.status)}, not int32")
         return _keep(output, None if fields is None else fields + extra), saved, output.status
 
     if parallel:
@@ -98,6 +103,12 @@ def _run(estimator, model, ys, inputs, prior, state, k0, key, save, parallel, ch
             (ks, ys, inputs, keys),
         )
     result = estimator.result(outputs, final)
+    if not isinstance(result, AbstractResult):
+        raise ValueError(
+            f"estimator: {type(estimator).__name__}.result must return a jaxest.AbstractResult "
+            f"(its final_state, status, any_status and saved fields beside its own), got "
+            f"{type(result).__name__}"
+        )
     if state is None:
         result = estimator.with_derivatives(result, model, prior, ys, inputs, ks)
     if extra:
@@ -148,7 +159,8 @@ def run(
         key: PRNG key for estimators that sample; step k draws with ``fold_in(key, k)``, so
             a run resumed with the same key (``state=``, ``k0=``) continues the draws of one
             run instead of repeating the first chunk's.
-        state: resume from this state (e.g. ``result.final_state``) instead of ``prior``;
+        state: resume from this state (e.g. ``result.final_state``) instead of ``prior``
+            (``ValueError`` where both are given);
             ``k0`` is then the index of the first of ``ys`` (the number of steps already done);
             a time-varying model keeps its whole time axis, read at the absolute step k. The
             run's arguments are checked as for a prior, but for the prior itself
@@ -181,6 +193,11 @@ def run(
             f"prior=..., inputs=...); got {len(args)} extra positional argument(s)"
         )
     check_estimator(estimator)
+    if prior is not None and state is not None:
+        raise ValueError(
+            "prior and state: a run starts from a prior or resumes from a state "
+            "(state=result.final_state, k0=...), not both; pass one of them"
+        )
     check_flag("parallel", parallel, none=True)
     check_flag("checkpoint", checkpoint, none=True)
     check_flag("throw", throw)
@@ -217,8 +234,7 @@ def run(
             save or SaveAt(), parallel, checkpoint,
         )  # fmt: skip
     except (TypeError, AttributeError, ValueError) as error:
-        if not parallel:
-            check_step_protocol(estimator, model, jnp.asarray(ys), inputs, prior, state, key, error)
+        check_step_protocol(estimator, model, jnp.asarray(ys), inputs, prior, state, key, error)
         raise
     if throw:
         result = raise_if_failed(result)
@@ -226,10 +242,13 @@ def run(
 
 
 def check_step_protocol(estimator, model, ys, inputs, prior, state, key, error) -> None:
-    """Where a sequential run failed inside its trace (``error``), a ``ValueError`` saying which
-    part of the protocol (:class:`~jaxest.AbstractEstimator`) the estimator's ``step`` broke, as
-    far as one abstract step shows: JAX's own errors name a scan carry or a tracer's attribute.
-    Returns where the step keeps the protocol (the caller re-raises ``error``)."""
+    """Where a run failed inside its trace (``error``), a ``ValueError`` saying which part of the
+    protocol (:class:`~jaxest.AbstractEstimator`) the estimator's ``step`` broke, as far as one
+    abstract step shows: JAX's own errors name a scan carry or a tracer's attribute, and a
+    status of another dtype than int32 fails the trace (a bool's True would read as NONFINITE,
+    whatever the step meant). An associative estimator's parallel run is checked by its
+    sequential step, made of the same pieces. Returns where the step keeps the protocol (the
+    caller re-raises ``error``)."""
     name = type(estimator).__name__
 
     def one_step():
@@ -275,16 +294,41 @@ def check_step_protocol(estimator, model, ys, inputs, prior, state, key, error) 
 
 
 def raise_if_failed(result: AbstractResult):
-    """``result``, raising (``eqx.error_if``, works under ``jit``) if its status is not OK.
+    """``result``, raising (``eqx.branched_error_if``, works under ``jit``) if its status is not
+    OK.
 
-    The message lists what each of the family's flags (``result.flags``) means. Every jaxest
-    result with a status is taken: an estimator's, a smoother's, a simulation's, EM's,
-    ``fit``'s, a Riccati solution, a steady-state gain, a network design.
+    The message says what to do about each of the family's flags (``result.flags``) set in
+    ``any_status`` (in any run, under ``vmap`` or over a batch axis): the set flags, known at run
+    time only, choose it among the messages of every combination of the family's flags
+    (:func:`_failure_messages`). Every jaxest result with a status is taken: an estimator's, a
+    smoother's, a simulation's, EM's, ``fit``'s, a Riccati solution, a steady-state gain, a
+    network design.
     """
     if not (hasattr(result, "flags") and hasattr(result, "any_status")):
         raise ValueError(f"result: expected a jaxest result, got {type(result).__name__}")
-    flags = result.flags
-    message = "a step's status is not OK; result.any_status has the flags. " + "; ".join(
-        flags.explain(flag) for flag in flags if flag.value
+    flags = [flag for flag in result.flags if flag.value]
+    # bit i: flags[i] is set in some run (unvmap_any: across a vmap's runs too)
+    index = sum(
+        unvmap_any((result.any_status & flag.value) != 0).astype(jnp.int32) << i
+        for i, flag in enumerate(flags)
     )
-    return eqx.error_if(result, result.any_status != 0, message)
+    messages = _failure_messages(result.flags)
+    return eqx.branched_error_if(result, result.any_status != 0, index, messages)
+
+
+@functools.cache
+def _failure_messages(flags: type[StatusFlag]) -> tuple[str, ...]:
+    """:func:`raise_if_failed`'s message for each combination of the family ``flags``'s flags:
+    entry i explains the flags whose bits are set in i (bit j: the family's j-th flag); entry 0
+    serves a status of another family's bits only."""
+    values = [flag.value for flag in flags if flag.value]
+    head = "a step's status is not OK; result.any_status has the flags.\n"
+    other = (
+        f"Its bits are not {flags.__name__}'s flags (another family's: "
+        f"result.flags.describe(result.any_status) names them)"
+    )
+    return tuple(
+        head + flags.explain(sum(v for j, v in enumerate(values) if i >> j & 1)) if i
+        else head + other
+        for i in range(2 ** len(values))
+    )  # fmt: skip

@@ -12,6 +12,7 @@ import optax
 import pytest
 
 import jaxest as je
+from jaxest.setmembership.status import SetStatus
 
 DT = 0.5
 
@@ -246,6 +247,25 @@ def test_a_resumed_run_checks_its_arguments():
         assert bool(resume(ys[25:], inputs[25:]).ok)
 
 
+def test_a_prior_beside_a_state_is_refused_before_tracing():
+    """``prior=`` beside ``state=`` was ignored without a word (the run resumed from the state);
+    it is named before the estimator is traced. ``state=None`` beside a prior is a run from it."""
+    model, ys = linear_problem()
+    first = je.run(AlphaBetaTracker(), model, ys[:25], prior=PRIOR)
+    traced = []
+
+    class Traced(AlphaBetaTracker):
+        def resume(self, model, state):
+            traced.append(state)
+            return state
+
+    with pytest.raises(ValueError, match="^prior and state: a run starts from a prior or resumes"):
+        je.run(Traced(), model, ys[25:], prior=PRIOR, state=first.final_state, k0=25)
+    assert traced == []
+    again = je.run(AlphaBetaTracker(), model, ys[:25], prior=PRIOR, state=None)
+    np.testing.assert_array_equal(again.mean, first.mean)
+
+
 def test_a_filter_resumes_from_another_filters_state():
     """Each Gaussian filter takes another's final state, whatever form holds P there (it raised
     a TypeError or AttributeError), the steady-state filter its mean; the particle filter draws
@@ -320,6 +340,43 @@ def test_throw_raises_with_advice():
     assert not bool(quiet.ok) and "NONFINITE" in je.Status.describe(quiet.any_status)
     with pytest.raises(Exception, match="NONFINITE"):
         jax.jit(lambda m: je.run(je.KalmanFilter(), m, ys, prior=PRIOR, throw=True).mean)(bad)
+
+
+class SetFamilyResult(AlphaBetaResult):
+    flags = SetStatus
+
+
+def _failure_message(function, *args) -> str:
+    with pytest.raises(Exception) as raised:  # equinox's runtime error
+        jax.block_until_ready(function(*args))
+    return str(raised.value)
+
+
+def test_throw_gives_the_advice_of_the_set_flags_only():
+    """The message of ``throw=True`` / ``raise_if_failed`` gave the advice of every flag of the
+    family, set or not; it gives that of each flag set in any run (under jit, under vmap and
+    over a batch axis) and no other."""
+    from jaxest._status import ADVICE
+
+    def failed(code, family=SetFamilyResult):
+        return je.raise_if_failed(family(final_state=None, any_status=code)).any_status
+
+    def check(message, set_flags):
+        for flag in SetStatus:
+            advice = f"{flag.name}: {ADVICE[flag.name]}"
+            assert (advice in message) is (flag in set_flags), (flag, message)
+
+    single = int(SetStatus.NOT_POSITIVE_DEFINITE)
+    check(_failure_message(jax.jit(failed), jnp.int32(single)), {SetStatus.NOT_POSITIVE_DEFINITE})
+    two = SetStatus.EMPTY_SET | SetStatus.RECOVERED
+    check(_failure_message(failed, jnp.int32(two)), {SetStatus.EMPTY_SET, SetStatus.RECOVERED})
+    runs = jnp.asarray([0, SetStatus.UNBOUNDED, SetStatus.NONFINITE], jnp.int32)
+    for batched in (jax.jit(jax.vmap(failed)), failed):
+        check(_failure_message(batched, runs), {SetStatus.UNBOUNDED, SetStatus.NONFINITE})
+    # bits of no flag of the family (64 is not a Status flag): named as such, no advice
+    foreign = _failure_message(lambda c: failed(c, AlphaBetaResult), jnp.int32(64))
+    assert "not Status's" in foreign and not any(a in foreign for a in ADVICE.values())
+    assert int(failed(jnp.int32(0))) == 0
 
 
 def test_status_flags_extend_per_family():
@@ -484,6 +541,46 @@ def test_a_step_that_breaks_the_protocol_is_named():
     ]:  # fmt: skip
         with pytest.raises(ValueError, match="^estimator: " + message):
             je.run(estimator, model, ys, prior=PRIOR)
+
+
+class BoolStatus(AlphaBetaTracker):
+    def step(self, model, state, k, y, u, key):
+        state, output = super().step(model, state, k, y, u, key)
+        return state, AlphaBetaOutput(output.mean, ~jnp.all(jnp.isfinite(output.mean)))
+
+
+class BoolStatusLeastSquares(RecursiveLeastSquares):
+    def output(self, model, previous, prefix, k):
+        output = super().output(model, previous, prefix, k)
+        return LeastSquaresOutput(output.mean, output.prediction, output.status != 0)
+
+
+def test_a_bool_status_is_named():
+    """A bool status ran sequentially, its True read as NONFINITE whatever the step meant by it
+    (its stacked status a bool array), and failed in parallel with lax.reduce's dtype error."""
+    model = constant_velocity()
+    ys = je.simulate(model, PRIOR, 10, jax.random.PRNGKey(0)).y
+    message = r"^estimator: {}.step's output.status must be an int32 scalar .*got bool\[\]"
+    with pytest.raises(ValueError, match=message.format("BoolStatus")):
+        je.run(BoolStatus(), model, ys, prior=PRIOR)
+    Hs = jnp.asarray(np.random.default_rng(0).normal(size=(10, 1, 2)))
+    prior = je.Gaussian(jnp.zeros(2), jnp.eye(2))
+    for parallel in (True, False):
+        with pytest.raises(ValueError, match=message.format("BoolStatusLeastSquares")):
+            je.run(BoolStatusLeastSquares(jnp.eye(1)), Hs, ys, prior=prior, parallel=parallel)
+
+
+class TupleResult(AlphaBetaTracker):
+    def result(self, outputs, final_state):
+        return outputs.mean, final_state
+
+
+def test_a_result_that_is_not_a_jaxest_result_is_named():
+    """``result`` returning something else than an AbstractResult failed with an AttributeError
+    from inside run (a tuple has no any_status)."""
+    with pytest.raises(ValueError, match=r"^estimator: TupleResult.result must return a jaxest"
+                                         r".AbstractResult .*got tuple"):  # fmt: skip
+        je.run(TupleResult(), constant_velocity(), jnp.zeros((5, 1)), prior=PRIOR)
 
 
 @pytest.mark.slow

@@ -198,7 +198,8 @@ def run_bank_scenarios(model, prior, states, ys, biases, masks: np.ndarray) -> t
 
     def run_one(mask, ys, states, start, k0):
         subset = fdi.sensor_subset(ys, mask)
-        result = run_estimator(smf, model, subset, prior=prior, state=start, k0=k0, save=kept)
+        start_from = {"prior": prior} if start is None else {"state": start}
+        result = run_estimator(smf, model, subset, **start_from, k0=k0, save=kept)
         flags = result.inconsistent, result.contains(states), result.unbounded
         return flags, result.final_state
 
