@@ -2,12 +2,16 @@
 
 Each system has n in {2, 3} states and m in {1, 2, 3} measurements:
 x_{k+1} = A x + a * g(x) + w and y = C x + c * g'(x) + v. Here A is random and stable, and
-C is random. Each g_i is a random one of thirteen terms of one other state: smooth (sin, tanh,
-0.3 v^2, cos v - 1, 0.1 v^3, atan, exp(-v^2), sqrt(1 + v^2) - 1), a bearing atan2(v,
+C is random. Each g_i is a random one of seventeen terms of one other state: smooth (sin,
+tanh, 0.3 v^2, cos v - 1, 0.1 v^3, atan, exp(-v^2), sqrt(1 + v^2) - 1, and
+logsumexp([v, -v]), which JAX writes with a ``stop_gradient``), a bearing atan2(v,
 -1 + 0.3 cos v) with its branch cut at v = 0, a step (v > 0.3), a kink written as the
 largest entry of an array, max([v, -v / 2]) (``jnp.max``, whose derivative JAX divides by the
-number of tied entries), a branch (``lax.cond(v > 0.3, sin, v / 2)``, a jump at 0.3) or a
-quantiser (floor(4 v) / 4, a step at every quarter). The noise is uniform in its
+number of tied entries), the smaller of v and 0.2 - v written as ``jnp.sort``'s first entry,
+a running maximum (``lax.cummax`` of [0.1 v, v], a kink at 0), a branch
+(``lax.cond(v > 0.3, sin, v / 2)``, a jump at 0.3), a quantiser (floor(4 v) / 4, a step at
+every quarter) or an angle wrapped into [-pi, pi) (``jnp.mod(4 v + pi, 2 pi) - pi``, a jump
+at every odd multiple of pi / 4). The noise is uniform in its
 box, and half of the runs draw it at the box's corners. The filter runs with the automatic
 remainder bounds (:func:`jaxest.setmembership.interval.remainder_bound`), its runs under one
 ``jit(vmap)``.
@@ -41,8 +45,8 @@ from jaxest.setmembership import (  # noqa: E402
     SetStatus,
 )
 
-#: the nonlinear terms, by name: smooth ones, a bearing across its branch cut, a step, a kink, a
-#: branch, a quantiser
+#: the nonlinear terms, by name: smooth ones, a bearing across its branch cut, a step, kinks, a
+#: branch, a quantiser, an angle wrap
 TERMS = {
     "sin": jnp.sin,
     "tanh": jnp.tanh,
@@ -57,6 +61,10 @@ TERMS = {
     "vee": lambda v: jnp.max(jnp.stack([v, -0.5 * v])),
     "branch": lambda v: jax.lax.cond(v > 0.3, jnp.sin, lambda u: 0.5 * u, v),
     "quantised": lambda v: 0.25 * jnp.floor(4 * v),
+    "logsumexp": lambda v: jax.nn.logsumexp(jnp.stack([v, -v])) - jnp.log(2.0),
+    "sorted": lambda v: jnp.sort(jnp.stack([v, 0.2 - v]))[0],
+    "running_max": lambda v: jax.lax.cummax(jnp.stack([0.1 * v, v]))[-1],
+    "wrapped": lambda v: jnp.mod(4 * v + jnp.pi, 2 * jnp.pi) - jnp.pi,
 }
 
 
