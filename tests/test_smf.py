@@ -444,12 +444,13 @@ def test_bounds_given_as_python_numbers_or_lists():
 
 
 def test_ill_conditioned_set_is_flagged_at_its_step():
-    """A prior of condition 1e15 (beyond kappa n eps <= 2^-10): flagged ILL_CONDITIONED and
-    UNBOUNDED at step 0, never reported as an empty set or a bounded set."""
+    """A prior of condition 1e13 scaled to a unit diagonal (beyond kappa n eps <= 2^-10): flagged
+    ILL_CONDITIONED and UNBOUNDED at step 0, never reported as an empty set or a bounded set."""
     model = BoundedNoiseModel(
-        lambda x, u: x, lambda x, u: x[1:], jnp.full(2, 0.01), jnp.full(1, 0.01)
-    )
-    prior = Ellipsoid(jnp.zeros(2), jnp.diag(jnp.array([1.0, 1e-15])))
+        lambda x, u: x, lambda x, u: x[1:], jnp.full(2, 0.01), jnp.full(1, 100.0)
+    )  # a measurement too coarse to cut the prior
+    turn = jnp.asarray([[1.0, -1.0], [1.0, 1.0]]) / jnp.sqrt(2.0)  # thin and at 45 degrees
+    prior = Ellipsoid(jnp.zeros(2), turn @ jnp.diag(jnp.array([1.0, 1e-13])) @ turn.T)
     result = set_membership_filter(model, jnp.zeros((3, 1)), prior=prior)
     status = np.asarray(result.status)
     assert status[0] & Status.ILL_CONDITIONED and status[0] & Status.UNBOUNDED
@@ -487,6 +488,15 @@ def test_state_only_functions_scalar_measurements_and_predicted_sets():
         wrong = BoundedNoiseModel(pendulum, lambda x: x, [1e-3, 1e-3], [0.02])
         with pytest.raises(ValueError, match=r"^model.h: expected it to return shape \(1,\)"):
             set_membership_filter(wrong, ys, prior=prior)
+    # a float64 constant in h promoted a float32 run's sets: the step was blamed for its state
+    f32 = lambda a: jnp.asarray(a, jnp.float32)
+    promoting = BoundedNoiseModel(
+        lambda x: x, lambda x: jnp.sin(x[:1]) + np.float64(0.1), f32([1e-3, 1e-3]), f32([0.02])
+    )
+    with pytest.raises(ValueError, match=r"^model.h: returns float64 for a float32 state"):
+        set_membership_filter(
+            promoting, f32(ys), prior=Ellipsoid(f32(prior.center), f32(prior.shape))
+        )
 
 
 def test_predict_and_contains_outside_jit_compile_one_program_each():
@@ -503,3 +513,38 @@ def test_predict_and_contains_outside_jit_compile_one_program_each():
     assert programs_compiled(result.contains, result.center) <= 2
     assert np.all(np.asarray(result.contains(result.center)))
     assert not np.any(np.asarray(result.contains(far)))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_the_states_units_do_not_lose_the_set(dtype):
+    """A damped pendulum with its rate in units 300 times smaller (every bound scaled alike) is
+    the same system: its sets are those of the first in the new units, all bounded and holding
+    the state. In float32 the conditioning check read P's own condition number, 9e4 for the
+    prior, beyond kappa n eps <= 2^-10 (8 192): every set was declared unbounded from step 0."""
+    units = jnp.asarray([1.0, 300.0], dtype)
+    pendulum = lambda x: jnp.stack([x[0] + 0.1 * x[1], 0.95 * x[1] - 0.1 * jnp.sin(x[0])])
+    in_units = lambda x: units * pendulum(x / units)
+    rng = np.random.default_rng(3)
+    states = [np.asarray([0.3, 0.1])]
+    for _ in range(59):
+        states.append(np.asarray(pendulum(states[-1])) + rng.uniform(-1e-3, 1e-3, 2))
+    states = np.stack(states)
+    ys = np.sin(states[:, :1]) + rng.uniform(-0.02, 0.02, (60, 1))
+    results = []
+    for scale, f in ((jnp.ones(2), pendulum), (units, in_units)):
+        h = lambda x: jnp.sin(x[:1])  # the first state keeps its units
+        model = BoundedNoiseModel(f, h, jnp.asarray(1e-3 * scale, dtype), jnp.full(1, 0.02, dtype))
+        prior = Ellipsoid(
+            (jnp.asarray([0.3, 0.1]) * scale).astype(dtype), jnp.diag(0.01 * scale**2).astype(dtype)
+        )
+        result = jax.jit(lambda ys: run(SetMembershipFilter(), model, ys, prior=prior))(
+            jnp.asarray(ys, dtype)
+        )
+        assert not np.any(np.asarray(result.status)), np.asarray(result.status)
+        assert np.all(np.asarray(result.contains(jnp.asarray(states * scale, dtype))))
+        results.append(result)
+    plain, scaled = results
+    np.testing.assert_allclose(scaled.center / units, plain.center, rtol=1e-3, atol=1e-6)
+    np.testing.assert_allclose(
+        scaled.shape / (units[:, None] * units[None, :]), plain.shape, rtol=1e-3, atol=1e-9
+    )

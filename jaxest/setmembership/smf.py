@@ -80,7 +80,7 @@ from jaxest.setmembership.ellipsoid import (
     strips_ellipsoid,
 )
 from jaxest.setmembership.interval import remainder_bound
-from jaxest.setmembership.rounding import whole_space
+from jaxest.setmembership.rounding import diagonal_scaling, whole_space
 from jaxest.setmembership.status import SetStatus as Status
 
 
@@ -221,7 +221,8 @@ class SetMembershipFilter(AbstractEstimator):
     """The nonlinear ellipsoidal SMF (module docstring).
 
     A set is trusted while its shape matrix is finite, positive definite, has condition number
-    at most :func:`~jaxest.setmembership.ellipsoid.max_condition` (kappa n eps <= 2^-10) and every
+    at most :func:`~jaxest.setmembership.ellipsoid.max_condition` (kappa n eps <= 2^-10) once
+    scaled to a unit diagonal (so whatever the states' units) and every
     sqrt(P_ii) is at most ``max_radius``. The conditioning check guards the arithmetic; the
     radius limit catches a set growing in every direction, which stays well conditioned. Its
     default is b sqrt(kappa_max), b the least positive noise half-width and kappa_max
@@ -258,8 +259,13 @@ class SetMembershipFilter(AbstractEstimator):
         return jnp.where(jnp.isfinite(smallest), smallest**2, 1.0) * max_condition(jnp.float64, n)
 
     def _trusted(self, model, center, shape):
-        """``(trusted, conditioned)``: the set passes every check / the conditioning one."""
-        conditioned = condition_number(shape) <= max_condition(shape.dtype, shape.shape[-1])
+        """``(trusted, conditioned)``: the set passes every check / the conditioning one, on
+        C = D^-1 P D^-1 (:func:`~jaxest.setmembership.rounding.diagonal_scaling`), the matrix
+        whose smallest eigenvalue the rounding bounds divide by (eqs O1, O2, O6). P's own
+        condition number changes with the states' units: a temperature in kelvin beside
+        concentrations made a float32 filter declare every set unbounded from its prior."""
+        _, correlation, _ = diagonal_scaling(shape)
+        conditioned = condition_number(correlation) <= max_condition(shape.dtype, shape.shape[-1])
         trusted = (
             conditioned
             & jnp.all(jnp.isfinite(shape))
@@ -472,6 +478,12 @@ def check_smf_arguments(model, ys, prior, inputs):
             ) from error
         if value.shape not in ((size,), ()) or (value.shape == () and size != 1):
             raise ValueError(f"{name}: expected it to return shape ({size},), got {value.shape}")
+        if value.dtype != jnp.result_type(prior.center):  # the step was blamed for its state
+            raise ValueError(
+                f"{name}: returns {value.dtype} for a {jnp.result_type(prior.center)} state (a "
+                "constant of another precision in it, e.g. a NumPy float64 array, promotes "
+                "it); the sets are carried in the prior's dtype"
+            )
     for name, bound, size in (("model.f_remainder", model.f_remainder, n),
                               ("model.h_remainder", model.h_remainder, m)):  # fmt: skip
         if bound is None:
