@@ -482,10 +482,16 @@ def _evaluate_shapes(model, x, u, state: str) -> dict[str, tuple]:
                 f"given; {type(err).__name__}: {err}); if its functions read u, pass "
                 f"inputs= with a leading time axis (they are called as (x), (x, u) or (x, u, k))"
             ) from err
-        inputs = "u = None" if u is None else f"u of shape {jax.tree.map(np.shape, u)}"
+        # either may be at fault: a flight model given 5 input channels of 6 blamed the state
+        blamed, inputs, sizes = (
+            (state, "u = None", "the state's size")
+            if u is None
+            else (f"{state} or inputs", f"u of shape {jax.tree.map(np.shape, u)}",
+                  "the state's size and the inputs' width")
+        )  # fmt: skip
         raise ValueError(
-            f"{state}: the model cannot be evaluated at a state of shape {np.shape(x)} "
-            f"with {inputs} and k = 0 ({type(err).__name__}: {err}); check the state's size, "
+            f"{blamed}: the model cannot be evaluated at a state of shape {np.shape(x)} "
+            f"with {inputs} and k = 0 ({type(err).__name__}: {err}); check {sizes}, "
             f"and that the model's functions take (x), (x, u) or (x, u, k)"
         ) from err
     names = ("f(x)", "F", "G", "Q", "h(x)", "H", "R")

@@ -13,7 +13,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 
 
 def subplots(nrows=1, ncols=1, width=6.0, height=3.6, **kwargs):
-    """``plt.subplots`` sized per panel."""
+    """``plt.subplots`` sized per panel, its axes always a 2-D array (``squeeze=False``:
+    ``axes[0, 1]`` for one row of two, not ``axes[1]``)."""
     return plt.subplots(
         nrows, ncols, figsize=(width * ncols, height * nrows), squeeze=False, **kwargs
     )

@@ -34,7 +34,13 @@ def write_json(path: Path, data) -> None:
 
 
 def markdown_table(headers: list[str], rows: list[list], floatfmt: str = ".4g") -> str:
-    """A GitHub-flavoured Markdown table."""
+    """A GitHub-flavoured Markdown table (``ValueError`` for a row of another width than
+    ``headers``: it was written under the wrong columns)."""
+    for index, row in enumerate(rows):
+        if len(row) != len(headers):
+            raise ValueError(
+                f"rows[{index}]: has {len(row)} cells for {len(headers)} headers {headers}"
+            )
 
     def cell(v):
         if isinstance(v, float | np.floating):

@@ -100,6 +100,11 @@ def test_mismatched_input_length():
     # one input for the whole run, with no time axis: the message says how to give one per step
     with pytest.raises(ValueError, match=r"has 1 time steps .* jnp\.broadcast_to\(u, \(T,\)"):
         je.run(KalmanFilter(), model, ys, inputs=jnp.ones((1,)), prior=prior)
+    # inputs too narrow for the model: the state alone was blamed
+    B = jnp.ones((2, 2))
+    narrow = je.NonlinearGaussian(lambda x, u: x + B @ u, lambda x, u: x[:1], model.Q, model.R)
+    with pytest.raises(ValueError, match=r"^prior.mean or inputs: .* u of shape \(1,\)"):
+        je.run(je.EKF(), narrow, ys, inputs=jnp.zeros((10, 1)), prior=prior)
 
 
 def test_inputs_may_be_a_pytree_and_missing_inputs_are_named():

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import pytest
 
-from jaxest.report import best_of, emit_json, timed
+from jaxest.report import best_of, emit_json, markdown_table, timed
 
 
 def counting_sleeper(calls: list):
@@ -60,3 +60,10 @@ def test_benchmark_output_records_the_xla_flags(monkeypatch, tmp_path, capsys):
     monkeypatch.delenv("XLA_FLAGS")
     assert json.loads(emit_json({}))["xla_flags"] == ""
     assert json.loads(emit_json([1.0])) == [1.0]  # only a dict has a place for it
+
+
+def test_markdown_table_refuses_a_row_of_another_width():
+    """A row with fewer cells than headers was written under the wrong columns, silently."""
+    assert markdown_table(["a", "b"], [[1, 0.5]]) == "| a | b |\n|---|---|\n| 1 | 0.5 |\n"
+    with pytest.raises(ValueError, match=r"^rows\[1\]: has 1 cells for 2 headers"):
+        markdown_table(["a", "b"], [[1, 2], [3]])

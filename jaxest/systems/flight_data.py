@@ -154,11 +154,13 @@ def _read(path: Path, widths: tuple[int, ...]) -> np.ndarray:
         table = np.loadtxt(path, encoding="latin-1", ndmin=2)
     except ValueError as error:
         raise ValueError(f"data: {path} is not a table of numbers: {error}") from None
-    if table.shape[0] < 2 or table.shape[1] not in widths:
+    if table.shape[1] not in widths:
         raise ValueError(
             f"data: {path} has {table.shape[0]} rows of {table.shape[1]} columns, expected "
             f"{' or '.join(map(str, widths))} columns (is it a file of the other aircraft?)"
         )
+    if table.shape[0] < 2:  # no sampling interval; was reported as a column count
+        raise ValueError(f"data: {path} has 1 row, and a record needs at least 2 (a time step)")
     _check_time(table[:, 0], path)
     return table
 
