@@ -56,11 +56,15 @@ class StatusFlag(enum.IntFlag):
 
 
 class Status(StatusFlag):
-    """The core's flags, which every estimator may raise."""
+    """The core's flags: those every estimator may raise, and ``SMOOTHER_INCONSISTENT``, which
+    the parallel smoothers raise in their filter's family."""
 
     OK = 0
     NONFINITE = 1  #: a mean, covariance or likelihood term is NaN or infinite
     NOT_POSITIVE_DEFINITE = 2  #: a covariance (or its factor) lost positive definiteness
+    #: a parallel-in-time smoother's result breaks the backward recursion it solves; a core bit
+    #: (high, clear of every family's own) because a smoother's result carries its filter's family
+    SMOOTHER_INCONSISTENT = 1 << 30
 
 
 #: what to do about each flag, shown by ``throw=True``; families add theirs through ``extend``
@@ -72,6 +76,14 @@ ADVICE = {
     "NOT_POSITIVE_DEFINITE": (
         "a covariance lost positive definiteness in floating point: use a factored filter "
         "(SquareRootKF, ImprovedSVDKF) or float64"
+    ),
+    "SMOOTHER_INCONSISTENT": (
+        "the parallel smoother's x(k|T) or P(k|T) disagrees with one step of the backward "
+        "recursion from its own x(k+1|T), P(k+1|T) by more than half a standard deviation or "
+        "half the variance in some direction: the associative scan's products of smoother "
+        "gains lost precision (large gains, where P(k+1|k) is ill-conditioned: a nearly "
+        "singular Q, in float32); use the sequential smoother (parallel=False, with "
+        "square_root=True in float32) or float64"
     ),
 }
 

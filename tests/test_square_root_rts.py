@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 import jaxest as je
+from tests import reference
 from tests.reference import random_system
 
 
@@ -158,3 +159,38 @@ def test_a_factored_filters_result_without_its_factors_is_refused():
         for parallel in (False, True):
             with pytest.raises(ValueError, match="result: the filter propagated .*save=SaveAt"):
                 je.rts_smooth(model, filtered, square_root=True, parallel=parallel)
+
+
+def test_float32_parallel_smoother_that_lost_precision_says_so():
+    """A 10-state chain whose Q is nearly singular (eigenvalue 1e-12 beside 0.01), T = 1000, in
+    float32 after SquareRootKF: its smoother gains reach thousands, and the parallel
+    square-root smoother, which multiplies them and offsets of the size of C_k x along the
+    scan, was 4.4 smoothed standard deviations off the float64 NumPy smoother (the sequential
+    one 1e-3) with status OK. It says SMOOTHER_INCONSISTENT (every step); in float64, and the
+    sequential smoother in float32, agree with NumPy and say OK."""
+    n, T = 10, 1000
+    F = 0.95 * np.eye(n) + 0.04 * np.eye(n, k=1)
+    Q = 1e-12 * np.eye(n)
+    Q[-1, -1] += 0.01
+    H = np.eye(n)[::3]
+    R = np.diag([0.1, 0.15, 0.2, 0.3])
+    model = je.LinearGaussian(*map(jnp.asarray, (F, H, Q, R)))
+    prior = je.Gaussian(jnp.zeros(n), jnp.eye(n))
+    ys = np.asarray(je.simulate(model, prior, T, jax.random.key(3)).y)
+    filtered = reference.kalman_filter(F, H, Q, R, np.zeros(n), np.eye(n), ys)
+    means, covs = reference.rts_smoother(F, *filtered[:4])
+    sd = np.sqrt(np.diagonal(covs, axis1=-2, axis2=-1))
+    for dtype, parallel, consistent in [
+        (jnp.float32, True, False), (jnp.float32, False, True), (jnp.float64, True, True)
+    ]:  # fmt: skip
+        model_, prior_, ys_ = je.astype((model, prior, jnp.asarray(ys)), dtype)
+        result = je.run(
+            je.SquareRootKF(), model_, ys_, prior=prior_, save=with_factor(je.SquareRootKF)
+        )
+        smoothed = je.rts_smooth(model_, result, square_root=True, parallel=parallel)
+        error = np.max(np.abs(np.asarray(smoothed.mean, np.float64) - means) / sd)
+        flags = np.asarray(smoothed.status)
+        if consistent:
+            assert error < 0.01 and not np.any(flags), (dtype, parallel, error)
+        else:
+            assert error > 1 and np.all(flags == je.Status.SMOOTHER_INCONSISTENT), error

@@ -25,11 +25,12 @@ import jax.numpy as jnp
 
 from jaxest._status import finite_status
 from jaxest.filters.base import FilterResult
-from jaxest.filters.common import definiteness_status
-from jaxest.linalg import after, mm, symmetrize
+from jaxest.filters.common import factor_status
+from jaxest.linalg import after, cholesky, mm, symmetrize
 from jaxest.scan import associative_scan
 from jaxest.smoothers.rts import (
     SmootherResult,
+    backward_consistency_status,
     backward_steps,
     smoother_gain,
     transition_cross_covariance,
@@ -84,8 +85,15 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None, k0=0):
         lambda a, b: jnp.concatenate([a, b]), SmootherElement(gains, g, L), last
     )
     suffixes = associative_scan(jax.vmap(combine), elements, reverse=True)
+    # one batched factorisation, after the scan (whose gains were factorised): two at once can
+    # deadlock jaxlib 0.10 on CPU (jaxest.linalg.after)
+    roots = cholesky(after(symmetrize(jnp.concatenate([suffixes.L, L])), suffixes.g))
+    smoothed_roots, local_roots = roots[: len(suffixes.L)], roots[len(suffixes.L) :]
     status = jax.vmap(finite_status)(suffixes.g, suffixes.L)
-    status = status | jax.vmap(definiteness_status)(suffixes.L)
+    status = status | jax.vmap(factor_status)(smoothed_roots)
+    status = status | backward_consistency_status(
+        suffixes.g, smoothed_roots, result.mean[:-1], pred_mean, gains, local_roots
+    )
     cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
     return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross, result.flags)
 

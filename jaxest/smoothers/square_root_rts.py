@@ -59,7 +59,13 @@ from jaxest.linalg import (
 from jaxest.models import psd_root
 from jaxest.scan import associative_scan
 from jaxest.smoothers.parallel import parallel_rts_smooth
-from jaxest.smoothers.rts import SmootherResult, backward_steps, smoothed_step, smoother_gain
+from jaxest.smoothers.rts import (
+    SmootherResult,
+    backward_consistency_status,
+    backward_steps,
+    smoothed_step,
+    smoother_gain,
+)
 
 
 def filtered_square_roots(result: FilterResult) -> jax.Array:
@@ -166,7 +172,8 @@ def parallel_square_root_pass(model, means, roots, inputs, k0):
     square-root elements: E_k = C_k, g_k = x(k|k) - C_k x(k+1|k), D_k = N_k from eqs (1)-(2)
     (the last: E = 0, g = x(T-1|T-1), D = L(T-1|T-1)), combined by
     :func:`combine_square_roots`; differentiated as the covariance-form parallel smoother
-    (:func:`parallel_covariance_pass`)."""
+    (:func:`parallel_covariance_pass`); and per step the status of
+    :func:`~jaxest.smoothers.rts.backward_consistency_status`."""
     T, n = means.shape
     steps, u_seq = backward_steps(T, inputs, k0)
     factors = lambda k, u, mean, root: joint_factors(model, k, u, mean, root)
@@ -178,7 +185,10 @@ def parallel_square_root_pass(model, means, roots, inputs, k0):
     )
     suffixes = associative_scan(jax.vmap(combine_square_roots), elements, reverse=True)
     covs = suffixes.D @ jnp.swapaxes(suffixes.D, -1, -2)
-    return suffixes.g, covs, covs[1:] @ jnp.swapaxes(gains, -1, -2)
+    consistency = backward_consistency_status(
+        suffixes.g, suffixes.D, means[:-1], pred_means, gains, N
+    )
+    return suffixes.g, covs, covs[1:] @ jnp.swapaxes(gains, -1, -2), consistency
 
 
 def parallel_covariance_pass(model, means, covs, inputs, k0):
@@ -217,12 +227,14 @@ def _parallel_square_root_pass_jvp(primals, tangents):
         (model, means, grams, inputs),
         (t_model, tangent_or_zeros(t_means, means), d_grams, t_inputs),
     )
-    return out, d_out
+    return out, (*d_out, None)
 
 
 def parallel_square_root_rts_smooth(model, result: FilterResult, inputs, k0) -> SmootherResult:
     """What :func:`~jaxest.rts_smooth` with ``parallel=True, square_root=True`` runs."""
     roots = after(filtered_square_roots(result), result)  # no batched QR beside the filter's
-    means, covs, cross = parallel_square_root_pass(model, result.mean, roots, inputs, k0)
-    status = jax.vmap(finite_status)(means, covs)
+    means, covs, cross, consistency = parallel_square_root_pass(
+        model, result.mean, roots, inputs, k0
+    )
+    status = jax.vmap(finite_status)(means, covs) | consistency
     return SmootherResult(means, covs, status | result.status, cross, result.flags)
