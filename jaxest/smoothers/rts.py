@@ -27,7 +27,6 @@ from jaxest.linalg import (
     sandwich,
     solve_triangular,
     symmetrize,
-    tria,
     working_precision_by_default,
 )
 from jaxest.models import check_inputs_used, check_time_axes
@@ -61,26 +60,27 @@ NEEDED = ("mean", "cov", "predicted_mean", "predicted_cov", "status")
 BACKWARD_TOLERANCE = 0.5
 
 
-def backward_consistency_status(means, roots, filtered_means, pred_means, gains, local_roots):
+def backward_consistency_status(
+    means, roots, filtered_means, pred_means, gains, sequential_roots
+) -> Int[Array, " T"]:
     """``SMOOTHER_INCONSISTENT`` at every step (T) where at some step k < T-1 a parallel
-    smoother's x(k|T), P(k|T) =
-    L(k|T) L(k|T)^T (``means``, ``roots``, all T) stray from one sequential step from its own
-    k+1: x = x(k|k) + C_k (x(k+1|T) - x(k+1|k)), P = S S^T with S = tria([N_k, C_k L(k+1|T)])
-    (``local_roots`` N_k, N_k N_k^T = P(k|k) - C_k P(k+1|k) C_k^T), by more than
+    smoother's x(k|T), P(k|T) = L(k|T) L(k|T)^T (``means``, ``roots``, all T) stray from one
+    sequential step from its own k+1: x = x(k|k) + C_k (x(k+1|T) - x(k+1|k)) and P = S S^T =
+    P(k|k) - C_k P(k+1|k) C_k^T + C_k P(k+1|T) C_k^T (``sequential_roots`` S, the caller's:
+    tria([N_k, C_k L(k+1|T)]) on square roots), by more than
     :data:`BACKWARD_TOLERANCE` in S's metric: |S^-1 (x(k|T) - x)| for the mean, max
     |S^-1 P(k|T) S^-T - I| for the covariance. The sequential step applies C_k to a residual,
     where the parallel scan multiplies gains and offsets of the size of C_k x: in float32, with
     gains of 5e3 (a nearly singular Q), means 366 standard deviations off said OK. A diagnostic:
     no derivative flows through it; NaN sets no bit (``NONFINITE`` says it). One batched
-    triangular solve (two would run at once: :func:`~jaxest.linalg.after`).
+    triangular solve (two would run at once: :func:`~jaxest.linalg.after`). Where the status is
+    read, it adds about a quarter to a parallel smoother's run time (16-27 %, n = 4 and 12).
 
     Every step, because the scan's error reaches steps whose own recursion holds: on that
     float32 case 4 471 steps were off by more than half a standard deviation, 35 broke it."""
-    means, roots, filtered_means, pred_means, gains, local_roots = jax.lax.stop_gradient(
-        (means, roots, filtered_means, pred_means, gains, local_roots)
+    means, roots, filtered_means, pred_means, gains, sequential_roots = jax.lax.stop_gradient(
+        (means, roots, filtered_means, pred_means, gains, sequential_roots)
     )
-    later = mm(gains, roots[1:])
-    sequential_roots = tria(jnp.concatenate([local_roots, later], -1))
     sequential = filtered_means + jnp.einsum("kij,kj->ki", gains, means[1:] - pred_means)
     both = jnp.concatenate([(means[:-1] - sequential)[..., None], roots[:-1]], -1)
     whitened = solve_triangular(sequential_roots, both, lower=True)

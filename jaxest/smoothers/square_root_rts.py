@@ -185,8 +185,9 @@ def parallel_square_root_pass(model, means, roots, inputs, k0):
     )
     suffixes = associative_scan(jax.vmap(combine_square_roots), elements, reverse=True)
     covs = suffixes.D @ jnp.swapaxes(suffixes.D, -1, -2)
+    sequential_roots = tria(jnp.concatenate([N, gains @ suffixes.D[1:]], -1))
     consistency = backward_consistency_status(
-        suffixes.g, suffixes.D, means[:-1], pred_means, gains, N
+        suffixes.g, suffixes.D, means[:-1], pred_means, gains, sequential_roots
     )
     return suffixes.g, covs, covs[1:] @ jnp.swapaxes(gains, -1, -2), consistency
 
