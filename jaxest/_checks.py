@@ -297,10 +297,11 @@ def first_input(inputs):
     return inputs[0] if inputs.shape[0] else jnp.zeros(inputs.shape[1:], inputs.dtype)
 
 
-def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool = False):
+def check_gaussian_arguments(model, ys, inputs, prior, *, positive_Q: bool | str = False):
     """All checks of a Gaussian filter's arguments (:func:`jaxest.run`).
 
-    ``positive_Q``: the filter inverts or factors Q, so Q must be positive definite.
+    ``positive_Q``: the filter inverts or factors Q, so Q must be positive definite (a string:
+    what else to do, where other filters are not the way out).
     """
     if not isinstance(model, AbstractGaussianModel):
         raise ValueError(
@@ -525,16 +526,20 @@ def check_noise_values(model, x, u, T, m, q, positive_Q):
     check_process_noise("model.process_noise(k=0) Q", Q, q, positive_Q)
 
 
-def check_process_noise(name: str, Q, q: int, positive: bool) -> None:
+def check_process_noise(name: str, Q, q: int, positive: bool | str) -> None:
     """Q symmetric positive semidefinite, and definite where the filter factors it
-    (``positive``), saying what to do with a rank-deficient one."""
+    (``positive``; a string says what else to do), saying what to do with a rank-deficient
+    one."""
     check_matrix(name, Q, (q, q), psd=True)
     if not positive:
         return
     try:
         check_matrix(name, Q, (q, q), spd=True)
     except ValueError as error:
+        otherwise = (
+            positive if isinstance(positive, str) else "use KalmanFilter, EKF or an SVD filter"
+        )
         raise ValueError(
             f"{error}; this filter factors Q: give a rank-deficient noise as G (n x q) with a "
-            f"positive definite q x q Q, or use KalmanFilter, EKF or an SVD filter"
+            f"positive definite q x q Q, or {otherwise}"
         ) from None

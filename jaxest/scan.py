@@ -106,7 +106,13 @@ def associative_scan(fn, elems, *, reverse: bool = False):
     with ``a`` the element later in the sequence), by the same combination tree as
     ``lax.associative_scan`` and with the combination compiled once (module docstring)."""
     check_callable("fn", fn)
-    T = jax.tree.leaves(elems)[0].shape[0]
+    lengths = {jnp.shape(leaf)[0] if jnp.ndim(leaf) else None for leaf in jax.tree.leaves(elems)}
+    if len(lengths) != 1 or None in lengths:  # a reshape's TypeError from inside the scan
+        raise ValueError(
+            f"elems: every leaf needs the same leading axis, the sequence's; got lengths "
+            f"{sorted(lengths, key=str)}"
+        )
+    T = lengths.pop()
     if T < 2:
         return elems
     if reverse:

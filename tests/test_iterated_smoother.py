@@ -142,5 +142,8 @@ def test_argument_errors():
         je.iterated_smooth(model, ys[:, None], prior=prior)
     with pytest.raises(ValueError, match="prior"):
         je.iterated_smooth(model, ys, prior=(prior.mean, prior.cov))
+    singular_Q = eqx.tree_at(lambda m: m.Q, model, jnp.zeros_like(model.Q))
+    with pytest.raises(ValueError, match="factors Q: .*, or pass parallel=False$"):
+        je.iterated_smooth(singular_Q, ys, prior=prior)  # it advised filters it does not take
     with pytest.raises(ValueError, match="^ys: has no steps"):  # a TypeError from the trace
         je.iterated_smooth(model, ys[:0], prior=prior)

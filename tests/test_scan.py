@@ -130,3 +130,14 @@ def test_lane_sweep_picks_the_width_fastest_relative_to_the_best():
     assert best == 256
     assert means[16] == pytest.approx((2.0 + 2.0 + 1.0) / 3)
     assert means[256] == pytest.approx((1.0 + 1.0 + 1.1) / 3)
+
+
+def test_leaves_of_other_lengths_are_named():
+    """Leaves with leading axes of 5 and 6 raised a reshape's TypeError from inside the scan."""
+    elems = (jnp.ones(5), jnp.ones(6))
+    with pytest.raises(
+        ValueError, match=r"^elems: every leaf needs the same leading axis.*\[5, 6\]"
+    ):
+        scan.associative_scan(lambda a, b: (a[0] + b[0], a[1] + b[1]), elems)
+    with pytest.raises(ValueError, match=r"^elems: .*\[5, None\]"):
+        scan.associative_scan(lambda a, b: (a[0] + b[0], a[1]), (jnp.ones(5), jnp.ones(())))

@@ -152,7 +152,9 @@ def iterated_smooth(
     Returns an :class:`IteratedSmootherResult`.
     """
     check_flag("parallel", parallel)
-    check_gaussian_arguments(model, ys, inputs, prior, positive_Q=parallel)
+    # the parallel filter factors Q; the way out is the sequential one, not another filter
+    positive_Q = "pass parallel=False" if parallel else False
+    check_gaussian_arguments(model, ys, inputs, prior, positive_Q=positive_Q)
     check_positive_int("num_iters", num_iters)
     if np.shape(ys)[0] == 0:
         raise ValueError("ys: has no steps (T = 0), nothing to smooth")
