@@ -1156,15 +1156,13 @@ def remainder_bound(
     hessian = _derivative_jaxpr(jax.hessian, fn, box, args)
     hess = lift(eval_jaxpr(hessian.jaxpr, hessian.consts, box, *args)[0])  # (m, n, n)
     found = kinks_over(primal, box, *args)
-    r = lambda: _up(jnp.sqrt(jnp.diagonal(shape)))
+    r = _up(jnp.sqrt(jnp.diagonal(shape)))
     # sum_j |spread_ij| r_j: the bound of spread (x - c) over the box
-    first_order = lambda spread: reduce_sum(
-        mul(spread, Interval(-r()[None], r()[None])), (1,)
-    ).mag()
+    first_order = lambda spread: reduce_sum(mul(spread, Interval(-r[None], r[None])), (1,)).mag()
     if found is None and zero_outputs(hessian.jaxpr):
         bound = jnp.zeros(hess.shape[:-2], center.dtype)
     else:
-        rr = _up(r()[:, None] * r()[None, :])
+        rr = _up(r[:, None] * r[None, :])
         diagonal = jnp.eye(rr.shape[0], dtype=bool)
         products = Interval(jnp.where(diagonal, 0.0, -rr), rr)
         quadratic = reduce_sum(mul(hess, Interval(products.lo[None], products.hi[None])), (1, 2))
