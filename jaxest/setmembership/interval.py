@@ -761,11 +761,8 @@ def _kink(name: str, params, invals) -> tuple[str, Array] | None:
         running_lo = lax.cummax(jnp.moveaxis(x.lo, params["axis"], -1), axis=x.lo.ndim - 1,
                                 reverse=params["reverse"])[..., None, :]  # fmt: skip
         n = x.shape[params["axis"]]
-        so_far = (
-            jnp.tril(jnp.ones((n, n), bool)).T
-            if not params["reverse"]
-            else jnp.tril(jnp.ones((n, n), bool))
-        )
+        # entry i is among those so far for the running extremum at j: i <= j (reverse: i >= j)
+        so_far = (jnp.tril if params["reverse"] else jnp.triu)(jnp.ones((n, n), bool))
         candidates = jnp.sum(so_far & (a_hi >= running_lo), axis=-2)
         return _NON_SMOOTH[name], jnp.any(candidates > 1)
     if name in ("reduce_max", "reduce_min"):
@@ -1001,7 +998,7 @@ def _pairwise(op, x, axes):
     return x[0]
 
 
-def _holds_extrema(jaxpr) -> bool:
+def _holds_rewrites(jaxpr) -> bool:
     """Whether ``jaxpr`` (or one inside it) holds what :func:`_eval_pairwise` rewrites."""
     return any_equation(jaxpr, lambda eqn: eqn.primitive.name in (*_EXTREMA, "stop_gradient"))
 
@@ -1016,20 +1013,20 @@ def _eval_pairwise(jaxpr, consts, *args) -> list:
     for eqn in jaxpr.eqns:
         invals, name = [read(v) for v in eqn.invars], eqn.primitive.name
         called = _called(eqn.params)
-        holds_extrema = called is not None and _holds_extrema(called[0])
+        rewrites = called is not None and _holds_rewrites(called[0])
         if name in _EXTREMA:
             outs = [_pairwise(_EXTREMA[name], invals[0], eqn.params["axes"])]
         elif name == "stop_gradient":
             outs = invals
-        elif name == "scan" and holds_extrema:
+        elif name == "scan" and rewrites:
             outs = _scan_pairwise(eqn.params, invals)
-        elif name == "cond" and any(_holds_extrema(b.jaxpr) for b in eqn.params["branches"]):
+        elif name == "cond" and any(_holds_rewrites(b.jaxpr) for b in eqn.params["branches"]):
             branches = [
                 lambda *operands, b=b: _eval_pairwise(b.jaxpr, b.consts, *operands)
                 for b in eqn.params["branches"]
             ]
             outs = lax.switch(invals[0], branches, *invals[1:])
-        elif name in _CALLS and holds_extrema:  # a custom derivative's primal: left to its rule
+        elif name in _CALLS and rewrites:  # a custom derivative's primal: left to its rule
             outs = _eval_pairwise(*called, *invals)
         else:
             out = eqn.primitive.bind(*invals, **eqn.primitive.get_bind_params(eqn.params))
@@ -1054,7 +1051,9 @@ def _scan_pairwise(params, invals) -> list:
     return [*carry, *ys]
 
 
-def with_pairwise_extrema(fn: Callable, box: Interval, args) -> tuple[Callable, jex.ClosedJaxpr]:
+def with_pairwise_extrema(
+    fn: Callable, box: Interval, args
+) -> tuple[Callable, jex.ClosedJaxpr, bool]:
     """``fn`` with every ``jnp.max`` / ``jnp.min`` of an array (``reduce_max``, ``reduce_min``;
     in a loop's body or a ``cond``'s branch too) computed as a tree of two-argument
     ``lax.max`` / ``lax.min``, for ``fn(x, *args)`` at the shapes of ``box`` and ``args``; ``fn`` itself where it has none.
@@ -1068,16 +1067,18 @@ def with_pairwise_extrema(fn: Callable, box: Interval, args) -> tuple[Callable, 
     the identity, which it is for values: JAX differentiates it as a constant, so fn's JAX
     derivatives are not those of its values (stop_gradient(x) * x: JAX's Hessian 0, the true
     one 2), and a Taylor bound needs the true ones; :func:`remainder_bound` adds what JAX's
-    Jacobian, the filter's, differs from the true one by."""
+    Jacobian, the filter's, differs from the true one by, where the third value, whether
+    ``fn`` holds a ``stop_gradient``, is true."""
     example, arg_shapes = _shapes(box, args)
     closed, out_shape = jax.make_jaxpr(fn, return_shape=True)(example, *arg_shapes)
-    if not _holds_extrema(closed.jaxpr):
-        return fn, closed
+    if not _holds_rewrites(closed.jaxpr):
+        return fn, closed, False
+    stops = any_equation(closed.jaxpr, lambda eqn: eqn.primitive.name == "stop_gradient")
     out_tree = jax.tree.structure(out_shape)
     rewritten = lambda x, *a: jax.tree.unflatten(
         out_tree, _eval_pairwise(closed.jaxpr, closed.consts, x, *a)
     )
-    return rewritten, jax.make_jaxpr(rewritten)(example, *arg_shapes)
+    return rewritten, jax.make_jaxpr(rewritten)(example, *arg_shapes), stops
 
 
 def _derivative_jaxpr(derivative: Callable, fn: Callable, box: Interval, args):
@@ -1108,7 +1109,7 @@ def hessian_interval(fn: Callable, box: Interval, *args) -> Interval:
         raise ValueError("box: expected an Interval(lo, hi) of two arrays of one shape")
     if is_concrete(box.lo) and is_concrete(box.hi) and np.any(np.asarray(box.lo > box.hi)):
         raise ValueError("box: has lo > hi, an empty box")  # its 'enclosure' was any number
-    fn, _ = with_pairwise_extrema(fn, box, args)
+    fn, _, _ = with_pairwise_extrema(fn, box, args)
     return _derivative_enclosures(jax.hessian, fn, [box], *args)[0]
 
 
@@ -1152,7 +1153,7 @@ def remainder_bound(
     check_operands(shape, {"center": center})
     box = bounding_box(center, shape)
     original = fn
-    fn, primal = with_pairwise_extrema(fn, box, args)
+    fn, primal, stops = with_pairwise_extrema(fn, box, args)
     hessian = _derivative_jaxpr(jax.hessian, fn, box, args)
     hess = lift(eval_jaxpr(hessian.jaxpr, hessian.consts, box, *args)[0])  # (m, n, n)
     found = kinks_over(primal, box, *args)
@@ -1172,11 +1173,7 @@ def remainder_bound(
         kink, jump = found
         spread = sub(*_derivative_enclosures(jax.jacfwd, fn, [box, point(center)], *args))
         bound = jnp.where(jump, jnp.nan, jnp.where(kink, _up(first_order(spread)), bound))
-    example, arg_shapes = _shapes(box, args)
-    stops = lambda eqn: eqn.primitive.name == "stop_gradient"
-    if fn is original or not any_equation(
-        jax.make_jaxpr(original)(example, *arg_shapes).jaxpr, stops
-    ):
+    if not stops:
         return bound
     # the filter linearises with JAX's Jacobian of the original fn, J0(c), which is not the
     # rewritten fn's J(c) across a stop_gradient: its remainder is the rewritten fn's plus

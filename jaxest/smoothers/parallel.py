@@ -85,8 +85,9 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None, k0=0):
         lambda a, b: jnp.concatenate([a, b]), SmootherElement(gains, g, L), last
     )
     suffixes = associative_scan(jax.vmap(combine), elements, reverse=True)
+    cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
     # one step of the sequential recursion's covariance from the scan's own P(k+1|T)
-    sequential = L + gains @ suffixes.L[1:] @ jnp.swapaxes(gains, -1, -2)
+    sequential = L + mm(gains, cross)
     # one batched factorisation, after the scan (whose gains were factorised): two at once can
     # deadlock jaxlib 0.10 on CPU (jaxest.linalg.after)
     roots = cholesky(after(symmetrize(jnp.concatenate([suffixes.L, sequential])), suffixes.g))
@@ -96,7 +97,6 @@ def parallel_rts_smooth(model, result: FilterResult, inputs=None, k0=0):
     status = status | backward_consistency_status(
         suffixes.g, smoothed_roots, result.mean[:-1], pred_mean, gains, sequential_roots
     )
-    cross = mm(suffixes.L[1:], jnp.swapaxes(gains, -1, -2))
     return SmootherResult(suffixes.g, suffixes.L, status | result.status, cross, result.flags)
 
 
